@@ -1,0 +1,127 @@
+"""Weighted, regularised, robust Levenberg-Marquardt for point residuals, with an honest covariance.
+
+The problem is `r(x) = (measured - predicted) / sigma`, three rows per pose, with an analytic Jacobian.
+Tikhonov rows `(x - x_prior) / prior_std` pull toward the nominal model; a robust loss (Huber or Cauchy)
+down-weights whole poses by iteratively re-weighted least squares on the pose's residual norm.
+Covariance: s^2 (J'WJ + L)^-1 J'WJ (J'WJ + L)^-1 with s^2 = |r|^2 / (m - p), not scipy's half cost.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+ROBUST_K = {"huber": 2.0, "cauchy": 2.4}
+"""Tuning constants on the pose residual norm in units of its robust scale (3-D residuals)."""
+OUTLIER_WEIGHT = 0.5
+"""A pose whose final robust weight is below this is reported as an outlier."""
+
+
+@dataclass
+class Solution:
+    x: np.ndarray  # the solved parameters (same length as x0)
+    cov: np.ndarray  # (p, p) covariance of the solved parameters
+    residual: np.ndarray  # (N, 3) unweighted residual measured - predicted at the solution
+    weights: np.ndarray  # (N,) final robust weights (1 without a robust loss)
+    s2: float  # a-posteriori variance factor |r|^2 / (m - p)
+    iterations: int
+    converged: bool
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def outliers(self) -> np.ndarray:
+        return np.flatnonzero(self.weights < OUTLIER_WEIGHT)
+
+
+def _robust_weights(rw: np.ndarray, loss: str | None) -> np.ndarray:
+    """Per-pose IRLS weights from the (N, 3) sigma-weighted residual."""
+    u = np.linalg.norm(rw, axis=1)
+    if loss is None:
+        return np.ones(len(u))
+    scale = np.sqrt(np.median(u**2) / 2.366)  # median of chi-square(3) is 2.366
+    u = u / max(scale, 1e-300)
+    k = ROBUST_K[loss]
+    if loss == "huber":
+        return np.where(u <= k, 1.0, k / u)
+    return 1.0 / (1.0 + (u / k) ** 2)
+
+
+def least_squares(
+    residual_jac: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+    x0: np.ndarray,
+    sigma: np.ndarray,
+    *,
+    prior: np.ndarray | None = None,
+    prior_std: np.ndarray | None = None,
+    loss: str | None = None,
+    max_iter: int = 100,
+    xtol: float = 1e-10,
+) -> Solution:
+    """Minimise sum_i w_i |r_i / sigma_i|^2 + |(x - prior) / prior_std|^2.
+
+    residual_jac(x) -> (r (N, 3) measured - predicted, J (N, 3, p) = d predicted / dx).
+    sigma (N,) is the 1-sigma per-coordinate uncertainty of each pose, same length unit as r.
+    """
+    if loss not in (None, "huber", "cauchy"):
+        raise ValueError(f"unknown robust loss {loss!r}; use 'huber', 'cauchy' or none")
+    x = np.array(x0, dtype=float)
+    p = len(x)
+    inv_s = 1.0 / np.asarray(sigma, dtype=float)
+    reg = prior is not None and prior_std is not None
+    lam_diag = (1.0 / np.asarray(prior_std) ** 2) if reg else np.zeros(p)
+    prior = x0 if prior is None else prior
+
+    def normal_eq(x, w):
+        r, J = residual_jac(x)
+        rw = r * inv_s[:, None]
+        sw = np.sqrt(w)[:, None, None] * inv_s[:, None, None]
+        Jw = (J * sw).reshape(-1, p)
+        rww = (rw * np.sqrt(w)[:, None]).ravel()
+        cost = rww @ rww + ((x - prior) ** 2 * lam_diag).sum()
+        A = Jw.T @ Jw
+        g = Jw.T @ rww - lam_diag * (x - prior)
+        return r, rw, A, g, cost
+
+    w = np.ones(len(inv_s))
+    r, rw, A, g, cost = normal_eq(x, w)
+    mu = 1e-3  # Marquardt damping relative to diag(J'J)
+    converged, it = False, 0
+    for it in range(1, max_iter + 1):
+        H = A + np.diag(lam_diag)
+        D = np.diag(H).copy()
+        D[D <= 0] = 1.0
+        try:
+            step = np.linalg.solve(H + mu * np.diag(D), g)
+        except np.linalg.LinAlgError:
+            mu *= 10
+            continue
+        x_new = x + step
+        r_new, rw_new, A_new, g_new, cost_new = normal_eq(x_new, w)
+        if cost_new <= cost:
+            x, r, rw, A, g, cost = x_new, r_new, rw_new, A_new, g_new, cost_new
+            mu = max(mu / 3.0, 1e-12)
+            if loss is not None:
+                w_new = _robust_weights(rw, loss)
+                if not np.allclose(w_new, w, atol=1e-6):
+                    w = w_new
+                    r, rw, A, g, cost = normal_eq(x, w)
+                    continue
+            if np.linalg.norm(step) <= xtol * (np.linalg.norm(x) + xtol):
+                converged = True
+                break
+        else:
+            mu *= 4.0
+            if mu > 1e16:
+                converged = True  # no descent direction left: at a minimum to working precision
+                break
+    m = rw.size
+    dof = max(m - p, 1)
+    s2 = float((w[:, None] * rw**2).sum() / dof)
+    H = A + np.diag(lam_diag)
+    Hinv = np.linalg.pinv(H)
+    cov = s2 * Hinv @ A @ Hinv if reg else s2 * Hinv
+    return Solution(x=x, cov=cov, residual=r, weights=w, s2=s2, iterations=it, converged=converged)
