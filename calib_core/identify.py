@@ -29,6 +29,27 @@ def tracker_sigma_mm(points_mm: np.ndarray) -> np.ndarray:
     return TRACKER_SIGMA0_MM + TRACKER_SIGMA_PER_M_MM * np.linalg.norm(points_mm, axis=1) / 1000.0
 
 
+@dataclass(frozen=True, eq=False)
+class CalibratedRobot:
+    """What a calibration leaves behind for prediction and compensation: the model and its parameters."""
+
+    model: RobotModel
+    x: np.ndarray  # full parameter vector, mm / rad
+    R0: np.ndarray  # base reference rotation
+
+    def predict(self, joints: np.ndarray) -> np.ndarray:
+        """Measured point (N, 3) mm in the measurement frame for joints (N, n) in internal units."""
+        return K.forward(self.model, self.x, joints, self.R0)
+
+    def to_state(self) -> dict:
+        """JSON-able state; `from_state(model, state)` restores it exactly."""
+        return {"x": self.x.tolist(), "R0": self.R0.tolist()}
+
+    @classmethod
+    def from_state(cls, model: RobotModel, state: dict) -> "CalibratedRobot":
+        return cls(model, np.array(state["x"], float), np.array(state["R0"], float))
+
+
 @dataclass
 class Calibration:
     """An identified model: the full parameter vector, which part was solved, and its covariance."""
@@ -42,9 +63,28 @@ class Calibration:
     point_ids: list[str] = field(default_factory=list)
     holdout_residual_mm: np.ndarray | None = None  # (N,) cross-validated distance per pose
 
+    @property
+    def robot(self) -> CalibratedRobot:
+        return CalibratedRobot(self.model, self.x, self.R0)
+
     def predict(self, joints: np.ndarray) -> np.ndarray:
         """Measured point (N, 3) mm for joints (N, n) in internal units."""
-        return K.forward(self.model, self.x, joints, self.R0)
+        return self.robot.predict(joints)
+
+    def to_dict(self) -> dict:
+        """The calibration answer of the contract (without the service's id)."""
+        n = self.model.n_joints
+        Rb, pb = self.base_pose()
+        ls = LENGTH_TO_MM[self.model.length_unit]
+        return {
+            "model": ["geometric"],
+            "parameters": self.parameters(),
+            "metrics": self.metrics(),
+            "identifiability": self.identifiability.to_dict(),
+            "base_pose": {"position_mm": pb.tolist(), "rotation_matrix": Rb.tolist()},
+            "calibrated_model": self.model.to_dict(self.x[: 5 * n].reshape(n, 5), self.x[5 * n + 6:]),
+            "units": {"length": self.model.length_unit, "angle": self.model.angle_unit, "length_per_mm": 1 / ls},
+        }
 
     @property
     def names(self) -> list[str]:
