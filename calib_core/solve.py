@@ -14,8 +14,8 @@ import numpy as np
 
 ROBUST_K = {"huber": 2.0, "cauchy": 2.4}
 """Tuning constants on the pose residual norm in units of its robust scale (3-D residuals)."""
-OUTLIER_WEIGHT = 0.5
-"""A pose whose final robust weight is below this is reported as an outlier."""
+OUTLIER_U = 4.0
+"""With a robust loss, a pose whose residual exceeds 4 robust sigmas (chi(3): p < 0.2 %) is an outlier."""
 
 
 @dataclass
@@ -24,6 +24,7 @@ class Solution:
     cov: np.ndarray  # (p, p) covariance of the solved parameters
     residual: np.ndarray  # (N, 3) unweighted residual measured - predicted at the solution
     weights: np.ndarray  # (N,) final robust weights (1 without a robust loss)
+    u: np.ndarray | None  # (N,) residual norm in robust sigmas (only with a robust loss)
     s2: float  # a-posteriori variance factor |r|^2 / (m - p)
     iterations: int
     converged: bool
@@ -34,16 +35,19 @@ class Solution:
 
     @property
     def outliers(self) -> np.ndarray:
-        return np.flatnonzero(self.weights < OUTLIER_WEIGHT)
+        """Indices of the poses the robust loss treated as outliers (none without one)."""
+        return np.array([], int) if self.u is None else np.flatnonzero(self.u > OUTLIER_U)
 
 
-def _robust_weights(rw: np.ndarray, loss: str | None) -> np.ndarray:
-    """Per-pose IRLS weights from the (N, 3) sigma-weighted residual."""
+def _standardised(rw: np.ndarray) -> np.ndarray:
+    """Per-pose residual norm in units of its robust scale, from the (N, 3) sigma-weighted residual."""
     u = np.linalg.norm(rw, axis=1)
-    if loss is None:
-        return np.ones(len(u))
     scale = np.sqrt(np.median(u**2) / 2.366)  # median of chi-square(3) is 2.366
-    u = u / max(scale, 1e-300)
+    return u / max(scale, 1e-300)
+
+
+def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
+    """Per-pose IRLS weights of the Huber or Cauchy loss."""
     k = ROBUST_K[loss]
     if loss == "huber":
         return np.where(u <= k, 1.0, k / u)
@@ -105,7 +109,7 @@ def least_squares(
             x, r, rw, A, g, cost = x_new, r_new, rw_new, A_new, g_new, cost_new
             mu = max(mu / 3.0, 1e-12)
             if loss is not None:
-                w_new = _robust_weights(rw, loss)
+                w_new = _robust_weights(_standardised(rw), loss)
                 if not np.allclose(w_new, w, atol=1e-6):
                     w = w_new
                     r, rw, A, g, cost = normal_eq(x, w)
@@ -124,4 +128,5 @@ def least_squares(
     H = A + np.diag(lam_diag)
     Hinv = np.linalg.pinv(H)
     cov = s2 * Hinv @ A @ Hinv if reg else s2 * Hinv
-    return Solution(x=x, cov=cov, residual=r, weights=w, s2=s2, iterations=it, converged=converged)
+    u = _standardised(rw) if loss is not None else None
+    return Solution(x=x, cov=cov, residual=r, weights=w, u=u, s2=s2, iterations=it, converged=converged)

@@ -89,8 +89,7 @@ class Twin:
             p = p + self.rng.normal(0.0, 1.0, (N, 3)) * tracker_sigma_mm(p)[:, None]
         return Measurements(joints=q, points=p, point_ids=[f"P{i + 1:04d}" for i in range(N)])
 
-    @property
-    def noise_rms_mm(self) -> float:
-        """Expected RMS 3-D distance of a perfect model to these measurements (per-pose noise only)."""
-        s = self.repeatability_mm**2 + (tracker_sigma_mm(np.zeros((1, 3)))[0] ** 2 if self.tracker_noise else 0.0)
-        return float(np.sqrt(3 * s))
+    def noise_rms_mm(self, points_mm: np.ndarray) -> float:
+        """Expected RMS 3-D distance of a perfect model to measurements at these points (noise only)."""
+        tracker = tracker_sigma_mm(points_mm) ** 2 if self.tracker_noise else 0.0
+        return float(np.sqrt(3 * np.mean(self.repeatability_mm**2 + tracker)))

@@ -1,0 +1,91 @@
+import math
+
+import numpy as np
+import pytest
+
+from calib_core import kinematics as K
+from calib_core.model import ModelError, parse_model
+from calib_core.robots import arm6, spray7
+
+
+def test_reference_robots_parse():
+    m = parse_model(spray7())
+    assert m.joint_names == ("J1", "J2", "J3", "J4", "J5", "J6", "J7")
+    assert list(m.prismatic) == [True, False, False, False, False, True, False]
+    assert m.geometry[3, 0] == 1350.0 and math.isclose(m.geometry[1, 1], -math.pi / 2)
+    assert parse_model(arm6()).n_joints == 6
+
+
+def _dh_fk(rows, q, tool):
+    """Textbook standard DH product Rz(th) Tz(d) Tx(a) Rx(al), one pose at a time."""
+    T = np.eye(4)
+    for (a, al, d, th), qi in zip(rows, q):
+        c, s, ca, sa = math.cos(th + qi), math.sin(th + qi), math.cos(al), math.sin(al)
+        T = T @ np.array([[c, -s * ca, s * sa, a * c], [s, c * ca, -c * sa, a * s], [0, sa, ca, d], [0, 0, 0, 1]])
+    return (T @ np.r_[tool, 1.0])[:3]
+
+
+def test_standard_dh_converts_exactly_to_mdh(seed):
+    doc = arm6()
+    m = parse_model(doc)
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-3, 3, (20, 6))
+    rows = [(j["a"], math.radians(j["alpha"]), j["d"], math.radians(j["theta"])) for j in doc["joints"]]
+    expected = np.array([_dh_fk(rows, qi, np.array(doc["tool"])) for qi in q])
+    got = K.forward(m, K.nominal_vector(m), q)
+    assert np.abs(got - expected).max() < 1e-9, f"seed {seed}"
+
+
+def test_units_metres_and_radians_equal_mm_and_degrees():
+    a = spray7()
+    b = spray7()
+    b["units"] = {"length": "m", "angle": "rad"}
+    for j in b["joints"]:
+        for k in ("a", "d"):
+            j[k] /= 1000.0
+        for k in ("alpha", "theta", "beta"):
+            j[k] = math.radians(j[k])
+        j["limits"] = [v / 1000.0 if j["type"] == "prismatic" else math.radians(v) for v in j["limits"]]
+        j["com"] = [v / 1000.0 for v in j["com"]]
+    b["tool"] = [v / 1000.0 for v in b["tool"]]
+    ma, mb = parse_model(a), parse_model(b)
+    assert np.allclose(ma.geometry, mb.geometry) and np.allclose(ma.limits, mb.limits)
+    assert np.allclose(ma.tool, mb.tool) and np.allclose(ma.com, mb.com)
+
+
+@pytest.mark.parametrize("mutate, field, text", [
+    (lambda d: d.update(joints=[]), "joints", "at least one joint"),
+    (lambda d: d["joints"][1].update(name="J1"), "joints[1].name", "duplicate"),
+    (lambda d: d["joints"][2].update(limits=[80, -80]), "joints[2].limits", "below upper"),
+    (lambda d: d["joints"][3].update(a=float("nan")), "joints[3].a", "finite"),
+    (lambda d: d.update(units={"length": "inch", "angle": "deg"}), "units.length", "unknown length unit"),
+    (lambda d: d.update(units={"length": "mm", "angle": "grad"}), "units.angle", "unknown angle unit"),
+    (lambda d: d["joints"][0].update(type="spherical"), "joints[0].type", "revolute"),
+    (lambda d: d.update(tool=[1, 2]), "tool", "3 numbers"),
+    (lambda d: d["joints"][4].pop("mass"), "joints", "every joint or for none"),
+    (lambda d: d.update(convention="dh") or d["joints"][3].update(beta=1.0), "joints[3].beta", "no beta"),
+])
+def test_bad_models_are_rejected_with_the_field_named(mutate, field, text):
+    doc = spray7()
+    mutate(doc)
+    with pytest.raises(ModelError) as exc:
+        parse_model(doc)
+    assert any(e["field"] == field and text in e["message"] for e in exc.value.errors), exc.value.errors
+
+
+def test_every_problem_is_listed_at_once():
+    doc = spray7()
+    doc["joints"][1]["name"] = "J1"
+    doc["joints"][2]["limits"] = [5, 5]
+    doc["units"] = {"length": "furlong"}
+    with pytest.raises(ModelError) as exc:
+        parse_model(doc)
+    assert len(exc.value.errors) == 3
+
+
+def test_to_dict_round_trips():
+    m = parse_model(spray7())
+    m2 = parse_model(m.to_dict())
+    assert np.allclose(m.geometry, m2.geometry) and np.allclose(m.limits, m2.limits) and np.allclose(m.tool, m2.tool)
+    d = parse_model(arm6())
+    assert np.allclose(parse_model(d.to_dict()).geometry, d.geometry)
