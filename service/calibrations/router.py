@@ -1,0 +1,43 @@
+from __future__ import annotations
+
+from fastapi import APIRouter, Body, Depends
+from sqlalchemy.orm import Session
+
+from ..deps import get_read_session, require_writer
+from ..problems import ProblemError, problem_responses
+from . import service
+from .schemas import CalibrationOut, CompensateIn, PredictIn, PredictOut
+
+router = APIRouter(tags=["calibrations"])
+
+
+@router.get("/calibrations/{calibration_id}", response_model=CalibrationOut, responses=problem_responses(404),
+            summary="Parameters, metrics and diagnosis of a calibration")
+def get_calibration(calibration_id: str, s: Session = Depends(get_read_session)) -> dict:
+    return service.answer(service.get_calibration(s, calibration_id))
+
+
+@router.post("/calibrations/{calibration_id}/predict", response_model=PredictOut,
+             dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422),
+             summary="Where the calibrated robot puts the measured point")
+def predict(calibration_id: str, body: PredictIn = Body(..., openapi_examples={"spray7": {
+        "summary": "one pose of spray7 (mm, deg)",
+        "value": {"joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}}}),
+        s: Session = Depends(get_read_session)) -> PredictOut:
+    """Joints in the model's units and joint order; positions in the measurement (tracker) frame, model length unit."""
+    c = service.get_calibration(s, calibration_id)
+    positions, unit = service.predict(s, c, body.joints, body.payload)
+    return PredictOut(positions=positions, unit=unit)
+
+
+@router.post("/calibrations/{calibration_id}/compensate", dependencies=[Depends(require_writer)],
+             responses=problem_responses(401, 404, 413, 422, 501),
+             summary="Joint commands that put the tool on targets (not implemented yet: 501)")
+def compensate(calibration_id: str, body: CompensateIn = Body(..., openapi_examples={"spray7": {
+        "summary": "one target with its nominal joint solution",
+        "value": {"targets": [[-2821.34, 876.61, -16.36]],
+                  "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}}}),
+        s: Session = Depends(get_read_session)):
+    """Part of a later issue: answers 501 with a problem document once the calibration is known to exist."""
+    service.get_calibration(s, calibration_id)
+    raise ProblemError(501, "compensation is not implemented yet", kind="not-implemented")

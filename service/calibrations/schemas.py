@@ -1,0 +1,52 @@
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+MAX_POSES = 100_000
+
+
+class CalibrationOut(BaseModel):
+    """The contract answer: parameters, metrics, diagnosis, plus what calib_core adds (identifiability,
+    base pose, calibrated model, units)."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"example": {
+        "id": "e2b9c4d1-7a63-4c1f-9e0a-4b5d6c7e8f90", "job_id": "c1e7a0d2-6b55-4f0e-a1c3-3a9d7b2e8f10",
+        "robot_id": "0b6f4f3e-4a0e-4a39-9d8e-2f6d5c3b1a90", "measurement_set_id": "5d1c2a8e-8f1b-4d55-bb1e-0b1a7f6c9e21",
+        "model": ["geometric"],
+        "parameters": [{"name": "J4.theta", "value": 0.0123, "nominal": 0.0, "std": 0.0004, "unit": "deg"}],
+        "metrics": {"n_poses": 150, "rms_mm": 0.05, "max_mm": 0.14, "holdout_rms_mm": 0.06},
+        "created_at": "2026-11-03T08:00:20+00:00"}})
+    id: str
+    job_id: str
+    robot_id: str
+    measurement_set_id: str
+    model: list[str]
+    parameters: list[dict[str, Any]]
+    metrics: dict[str, Any]
+    created_at: str
+
+
+class PredictIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}]})
+    joints: list[list[Finite]] = Field(min_length=1, max_length=MAX_POSES,
+                                       description="N poses x n joints, model units, model joint order")
+    payload: Finite | list[Finite] | None = Field(None, description="kg at the tool, one value or one per pose; "
+                                                  "used only by calibrations that identified load effects")
+
+
+class PredictOut(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"example": {"positions": [[-2821.3401, 876.6147, -16.3583]],
+                                                             "unit": "mm"}})
+    positions: list[list[float]] = Field(description="measured point in the measurement frame, model length unit")
+    unit: str
+
+
+class CompensateIn(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"targets": [[-2821.34, 876.61, -16.36]], "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}]})
+    targets: list[list[Finite]]
+    seed_joints: list[list[Finite]]

@@ -1,0 +1,31 @@
+from __future__ import annotations
+
+from fastapi import APIRouter, Body, Depends, Response
+from sqlalchemy.orm import Session
+
+from ..deps import get_read_session, get_session, get_settings, require_writer
+from ..problems import problem_responses
+from . import service
+from .schemas import JobIn, JobOut
+
+router = APIRouter(tags=["jobs"])
+
+
+@router.post("/jobs", status_code=202, response_model=JobOut, dependencies=[Depends(require_writer)],
+             responses=problem_responses(401, 413, 422), summary="Queue a calibration of a measurement set")
+def create_job(response: Response, body: JobIn = Body(..., openapi_examples={
+        "geometric": {"summary": "geometric model only",
+                      "value": {"measurement_set_id": "5d1c2a8e-8f1b-4d55-bb1e-0b1a7f6c9e21", "model": "geometric"}},
+        "auto": {"summary": "geometric model plus diagnosis",
+                 "value": {"measurement_set_id": "5d1c2a8e-8f1b-4d55-bb1e-0b1a7f6c9e21", "model": "auto"}}}),
+        s: Session = Depends(get_session), settings=Depends(get_settings)) -> JobOut:
+    """The job is durable once this answers 202 (same transaction); poll `Location`."""
+    j = service.enqueue(s, body.measurement_set_id, body.model, settings.max_attempts)
+    response.headers["Location"] = f"/jobs/{j.id}"
+    return JobOut.of(j)
+
+
+@router.get("/jobs/{job_id}", response_model=JobOut, responses=problem_responses(404),
+            summary="A job's status and progress")
+def get_job(job_id: str, s: Session = Depends(get_read_session)) -> JobOut:
+    return JobOut.of(service.get_job(s, job_id))

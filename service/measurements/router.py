@@ -1,0 +1,49 @@
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, File, Query, Response, UploadFile
+from sqlalchemy.orm import Session
+
+from ..db import Database
+from ..deps import get_db, get_read_session, get_settings, require_writer
+from ..problems import ProblemError, problem_responses
+from . import service
+from .schemas import MeasurementSetOut
+
+router = APIRouter(tags=["measurements"])
+
+CSV_EXAMPLE = ("point,J1,J2,J3,J4,J5,J6,J7,x,y,z,timestamp\n"
+               "P001,3098.611678,54.315206,-45.791980,73.781843,-76.455800,1757.014212,-70.779606,"
+               "-2821.3401,876.6147,-16.3583,2026-11-03T08:00:19+00:00\n")
+
+
+@router.post("/robots/{robot_id}/measurements", status_code=201, response_model=MeasurementSetOut,
+             dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422),
+             summary="Upload a measurement CSV (contract section 2, multipart field `file`)",
+             openapi_extra={"requestBody": {"content": {"multipart/form-data": {
+                 "schema": {"type": "object", "required": ["file"],
+                            "properties": {"file": {"type": "string", "format": "binary"}}},
+                 "examples": {"spray7": {"summary": "one pose of spray7", "value": {"file": CSV_EXAMPLE}}}}}}})
+def upload(robot_id: str, response: Response, file: UploadFile = File(..., description="the measurement CSV"),
+           db: Database = Depends(get_db), settings=Depends(get_settings)) -> MeasurementSetOut:
+    """The CSV is checked all-or-nothing against the robot's model (joint names, limits, numbers, timestamps).
+    On any problem nothing is stored and the 422 problem document lists every error as
+    `{row, column, value, message}` (row = line number in the file). Bodies above the size limit get 413."""
+    raw = file.file.read(settings.max_upload_bytes + 1)
+    if len(raw) > settings.max_upload_bytes:
+        raise ProblemError(413, f"the upload exceeds {settings.max_upload_bytes} bytes", kind="too-large")
+    m = service.create_measurement_set(db, robot_id, raw, file.filename)
+    response.headers["Location"] = f"/measurements/{m.id}"
+    return MeasurementSetOut.of(m)
+
+
+@router.get("/robots/{robot_id}/measurements", response_model=list[MeasurementSetOut],
+            responses=problem_responses(404), summary="The measurement sets of a robot, oldest first")
+def list_sets(robot_id: str, limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0),
+              s: Session = Depends(get_read_session)) -> list[MeasurementSetOut]:
+    return [MeasurementSetOut.of(m) for m in service.list_for_robot(s, robot_id, limit, offset)]
+
+
+@router.get("/measurements/{measurement_set_id}", response_model=MeasurementSetOut,
+            responses=problem_responses(404), summary="A stored measurement set's summary")
+def get_set(measurement_set_id: str, s: Session = Depends(get_read_session)) -> MeasurementSetOut:
+    return MeasurementSetOut.of(service.get_measurement_set(s, measurement_set_id))

@@ -1,0 +1,34 @@
+from __future__ import annotations
+
+from datetime import datetime, timezone
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from calib_core.robots import spray7
+
+SPRAY7_EXAMPLE = spray7()
+
+
+def iso(t: float | None) -> str | None:
+    return None if t is None else datetime.fromtimestamp(t, timezone.utc).isoformat()
+
+
+class RobotOut(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"example": {
+        "id": "0b6f4f3e-4a0e-4a39-9d8e-2f6d5c3b1a90", "name": "spray7", "joint_names": [f"J{i}" for i in range(1, 8)],
+        "n_joints": 7, "units": {"length": "mm", "angle": "deg"}, "created_at": "2026-11-03T08:00:19+00:00",
+        "model": SPRAY7_EXAMPLE}})
+    id: str
+    name: str
+    joint_names: list[str]
+    n_joints: int
+    units: dict[str, Any] = Field(description="the model's length and angle units")
+    created_at: str
+    model: dict[str, Any] = Field(description="the robot model JSON exactly as posted (contract section 1)")
+
+    @classmethod
+    def of(cls, r) -> "RobotOut":
+        units = r.model_json.get("units") if isinstance(r.model_json.get("units"), dict) else {}
+        return cls(id=r.id, name=r.name, joint_names=r.joint_names, n_joints=len(r.joint_names), units=units,
+                   created_at=iso(r.created_at), model=r.model_json)
