@@ -57,27 +57,30 @@ def analyse(J: np.ndarray, names: list[str], order: list[int] | None = None) -> 
     nonfunctional = [i for i in range(P) if norms[i] <= NONFUNCTIONAL_TOL * norms.max()]
     A = J / np.where(norms > 0, norms, 1.0)
     order = preference_order(names) if order is None else order
-    basis = np.zeros((m, 0))
+    basis = np.empty((m, P))
     kept: list[int] = []
     rejected: list[int] = []
     for i in order:
         if i in nonfunctional:
             continue
+        Q = basis[:, : len(kept)]
         v = A[:, i]
         for _ in range(2):  # re-orthogonalise once: classical Gram-Schmidt twice is stable
-            v = v - basis @ (basis.T @ v)
-        if np.linalg.norm(v) > REDUNDANT_TOL:
-            basis = np.column_stack([basis, v / np.linalg.norm(v)])
+            v = v - Q @ (Q.T @ v)
+        norm = np.linalg.norm(v)
+        if norm > REDUNDANT_TOL:
+            basis[:, len(kept)] = v / norm
             kept.append(i)
         else:
             rejected.append(i)
+    G = A.T @ A  # the small Gram matrix serves the rest: partners and singular values
     redundant = {}
     if rejected:
-        coef, *_ = np.linalg.lstsq(A[:, kept], A[:, rejected], rcond=None)
+        coef = np.linalg.solve(G[np.ix_(kept, kept)], G[np.ix_(kept, rejected)])
         for k, i in enumerate(rejected):
             c = np.abs(coef[:, k])
             redundant[i] = [kept[j] for j in np.argsort(-c) if c[j] > 0.05 * c.max()]
-    s = np.linalg.svd(A[:, kept], compute_uv=False)
+    s = np.sqrt(np.clip(np.linalg.eigvalsh(G[np.ix_(kept, kept)])[::-1], 0.0, None))
     return Identifiability(
         names=names, identifiable=kept, redundant=redundant, nonfunctional=nonfunctional, rank=len(kept),
         condition_number=float(s[0] / s[-1]), observability_index=float(np.exp(np.log(s).mean()) / np.sqrt(m)),

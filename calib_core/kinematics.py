@@ -35,6 +35,13 @@ def nominal_vector(model: RobotModel, base: np.ndarray | None = None) -> np.ndar
     return np.concatenate([model.geometry.ravel(), b, model.tool])
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (broadcasting), without np.cross's overhead."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _rx(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
@@ -107,7 +114,7 @@ class Chain:
 
     def joint_jacobian(self) -> np.ndarray:
         """dp/dq for every joint, shape (N, 3, n): z x (p - o) for revolute, z for prismatic."""
-        rev = np.cross(self.z_axis, self.p[None] - self.o_theta)
+        rev = _cross(self.z_axis, self.p[None] - self.o_theta)
         pri = self.z_axis
         J = np.where(self.model.prismatic[:, None, None], pri, rev)
         return np.moveaxis(J, 0, 2)
@@ -117,10 +124,10 @@ class Chain:
         n, N, p = self.model.n_joints, self.N, self.p
         cols = np.empty((n, 5, N, 3))
         cols[:, 0] = self.x_prev  # a_{i-1}: translation along x_{i-1}
-        cols[:, 1] = np.cross(self.x_prev, p[None] - self.o_prev)  # alpha_{i-1}
+        cols[:, 1] = _cross(self.x_prev, p[None] - self.o_prev)  # alpha_{i-1}
         cols[:, 2] = self.z_axis  # d_i
-        cols[:, 3] = np.cross(self.z_axis, p[None] - self.o_theta)  # theta_i
-        cols[:, 4] = np.cross(self.y_beta, p[None] - self.o_beta)  # beta_i
+        cols[:, 3] = _cross(self.z_axis, p[None] - self.o_theta)  # theta_i
+        cols[:, 4] = _cross(self.y_beta, p[None] - self.o_beta)  # beta_i
         geo = cols.reshape(5 * n, N, 3)
         base = self.x[5 * n: 5 * n + 6]
         rz_axis = self.R0[:, 2]
@@ -128,7 +135,7 @@ class Chain:
         rx_axis = (self.R0 @ _rz(base[5]) @ _ry(base[4]))[:, 0]
         dp = p - self.base_origin
         bcols = np.stack([np.broadcast_to(e, (N, 3)) for e in np.eye(3)]
-                         + [np.cross(rx_axis, dp), np.cross(ry_axis, dp), np.cross(rz_axis, dp)])
+                         + [_cross(rx_axis, dp), _cross(ry_axis, dp), _cross(rz_axis, dp)])
         tcols = np.moveaxis(self.R[-1], 2, 0)  # (3, N, 3)
         J = np.concatenate([geo, bcols, tcols], axis=0)  # (P, N, 3)
         return np.moveaxis(J, 0, 2)

@@ -14,8 +14,8 @@ import numpy as np
 
 ROBUST_K = {"huber": 2.0, "cauchy": 2.4}
 """Tuning constants on the pose residual norm in units of its robust scale (3-D residuals)."""
-OUTLIER_U = 4.0
-"""With a robust loss, a pose whose residual exceeds 4 robust sigmas (chi(3): p < 0.2 %) is an outlier."""
+OUTLIER_U = 5.0
+"""With a robust loss, a pose whose residual exceeds 5 robust sigmas (chi(3): p < 2e-5) is an outlier."""
 
 
 @dataclass
@@ -63,12 +63,14 @@ def least_squares(
     prior_std: np.ndarray | None = None,
     loss: str | None = None,
     max_iter: int = 100,
-    xtol: float = 1e-10,
+    ftol: float = 1e-10,
+    atol: float = 1e-14,
 ) -> Solution:
     """Minimise sum_i w_i |r_i / sigma_i|^2 + |(x - prior) / prior_std|^2.
 
     residual_jac(x) -> (r (N, 3) measured - predicted, J (N, 3, p) = d predicted / dx).
     sigma (N,) is the 1-sigma per-coordinate uncertainty of each pose, same length unit as r.
+    Converged when the next step would lower the weighted cost by less than ftol * cost + atol.
     """
     if loss not in (None, "huber", "cauchy"):
         raise ValueError(f"unknown robust loss {loss!r}; use 'huber', 'cauchy' or none")
@@ -92,7 +94,7 @@ def least_squares(
 
     w = np.ones(len(inv_s))
     r, rw, A, g, cost = normal_eq(x, w)
-    mu = 1e-3  # Marquardt damping relative to diag(J'J)
+    mu = 1e-4  # Marquardt damping relative to diag(J'WJ + L)
     converged, it = False, 0
     for it in range(1, max_iter + 1):
         H = A + np.diag(lam_diag)
@@ -103,25 +105,20 @@ def least_squares(
         except np.linalg.LinAlgError:
             mu *= 10
             continue
-        x_new = x + step
-        r_new, rw_new, A_new, g_new, cost_new = normal_eq(x_new, w)
-        if cost_new <= cost:
-            x, r, rw, A, g, cost = x_new, r_new, rw_new, A_new, g_new, cost_new
-            mu = max(mu / 3.0, 1e-12)
-            if loss is not None:
-                w_new = _robust_weights(_standardised(rw), loss)
-                if not np.allclose(w_new, w, atol=1e-6):
-                    w = w_new
-                    r, rw, A, g, cost = normal_eq(x, w)
-                    continue
-            if np.linalg.norm(step) <= xtol * (np.linalg.norm(x) + xtol):
-                converged = True
-                break
-        else:
-            mu *= 4.0
-            if mu > 1e16:
-                converged = True  # no descent direction left: at a minimum to working precision
-                break
+        if step @ g <= ftol * cost + atol:  # predicted chi-square decrease: nothing left to gain
+            converged = True
+            break
+        r_new, rw_new, A_new, g_new, cost_new = normal_eq(x + step, w)
+        if cost_new > cost:
+            mu *= 10.0
+            continue
+        x, r, rw, A, g, cost = x + step, r_new, rw_new, A_new, g_new, cost_new
+        mu = max(mu / 10.0, 1e-15)
+        if loss is not None:
+            w_new = _robust_weights(_standardised(rw), loss)
+            if not np.allclose(w_new, w, atol=1e-6):
+                w = w_new
+                r, rw, A, g, cost = normal_eq(x, w)
     m = rw.size
     dof = max(m - p, 1)
     s2 = float((w[:, None] * rw**2).sum() / dof)

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from scipy import stats
 
 from calib_core import kinematics as K
 from calib_core.identify import evaluate, identify
@@ -49,9 +50,15 @@ def test_noisy_estimates_lie_within_reported_uncertainty(robot, seed):
     twin = Twin(model, seed)
     meas = twin.measure(n=150)
     cal = identify(model, meas, folds=5)
-    z = np.array(list(_compare(cal, twin).values()))
-    # 3-sigma for every parameter; with ~25 of them one excursion past 3 is allowed, none past 4
-    assert (np.abs(z) > 3).sum() <= 1 and np.abs(z).max() < 4, (seed, z.round(2))
+    z = _compare(cal, twin)
+    zs = np.array(list(z.values()))
+    # each parameter within its reported 3-sigma (with ~25 correlated parameters allow two past 3, none past 4.5)
+    assert (np.abs(zs) > 3).sum() <= 2 and np.abs(zs).max() < 4.5, (seed, zs.round(2))
+    # and the whole error vector is consistent with the reported covariance: chi-square with p dof
+    keep = [k for k, i in enumerate(cal.free) if cal.names[i] in z]
+    err = np.array([cal.x[cal.free[k]] - twin.x_true[cal.free[k]] for k in keep])
+    chi2 = err @ np.linalg.solve(cal.solution.cov[np.ix_(keep, keep)], err)
+    assert chi2 < stats.chi2.ppf(0.9999, len(keep)), (seed, chi2, len(keep))
     m = cal.metrics()
     assert 0.8 < m["sigma0"] < 1.6  # the noise model (tracker + repeatability) is about right
     assert m["rms_mm"] <= m["holdout_rms_mm"] < 1.5 * twin.noise_rms_mm(meas.points)
@@ -84,8 +91,10 @@ def test_robust_loss_names_the_outliers_and_ignores_them(seed):
     plain = identify(model, meas, folds=0)
     robust = identify(model, meas, loss="huber", folds=0)
     cauchy = identify(model, meas, loss="cauchy", folds=0)
-    assert set(robust.metrics()["outliers"]) == {meas.point_ids[i] for i in bad}
-    assert set(cauchy.metrics()["outliers"]) == {meas.point_ids[i] for i in bad}
+    truth = {meas.point_ids[i] for i in bad}
+    for fit in (robust, cauchy):  # every planted outlier is named; at most one 5-sigma false alarm
+        named = set(fit.metrics()["outliers"])
+        assert truth <= named and len(named - truth) <= 1, (seed, sorted(named), sorted(truth))
     clean = twin.measure(n=200)
     assert evaluate(robust, clean)["rms_mm"] < 0.6 * evaluate(plain, clean)["rms_mm"]
 
