@@ -1,12 +1,20 @@
 """Geometric identification of the 7-DoF spray robot: ours vs scipy least_squares with finite differences.
 
-Both solve the same problem (same twin data, same weights, same independent parameters, same start);
-the peer gets the pre-alignment and the parameter selection for free and is timed on its solve alone.
+All solve the same problem (same twin data, same weights, same independent parameters, same start);
+the peers get the pre-alignment and the parameter selection for free and are timed on their solve alone.
+Two peers: scipy FD on *our* vectorised forward kinematics (the analytic Jacobian's gain alone), and
+scipy FD on a textbook per-pose 4x4 forward kinematics (what a residual for scipy usually looks like).
+BLAS runs single-threaded for everyone, as in the service's worker processes.
 Run: .venv/bin/python -m benchmarks.bench_identify
 """
 from __future__ import annotations
 
-import time
+import math
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import time  # noqa: E402
 
 import numpy as np
 from scipy.optimize import least_squares as scipy_least_squares
@@ -28,7 +36,35 @@ def _best_time(fn, repeats: int) -> tuple[float, object]:
     return best, out
 
 
-def peer_problem(model, meas):
+def _homogeneous(R, t):
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def per_pose_forward(model, x, q, R0):
+    """Textbook forward kinematics: one 4x4 product per joint and pose, in Python loops."""
+    n = model.n_joints
+    g = x[: 5 * n].reshape(n, 5)
+    base = _homogeneous(K.base_rotation(x[5 * n: 5 * n + 6], R0), x[5 * n: 5 * n + 3])
+    tool = np.r_[x[5 * n + 6:], 1.0]
+    out = np.empty((len(q), 3))
+    for k, qk in enumerate(q):
+        T = base
+        for j in range(n):
+            a, alpha, d, theta, beta = g[j]
+            th, dd = (theta, d + qk[j]) if model.prismatic[j] else (theta + qk[j], d)
+            ca, sa, ct, st, cb, sb = (math.cos(alpha), math.sin(alpha), math.cos(th), math.sin(th),
+                                      math.cos(beta), math.sin(beta))
+            A = np.array([[ct, -st, 0, a], [st * ca, ct * ca, -sa, -sa * dd], [st * sa, ct * sa, ca, ca * dd],
+                          [0, 0, 0, 1.0]])  # Craig: Rx(alpha) Tx(a) Rz(theta) Tz(d)
+            Ry = np.array([[cb, 0, sb, 0], [0, 1.0, 0, 0], [-sb, 0, cb, 0], [0, 0, 0, 1.0]])
+            T = T @ A @ Ry
+        out[k] = (T @ tool)[:3]
+    return out
+
+
+def peer_problem(model, meas, forward=K.forward):
     """The residual function, start and selection scipy gets (computed outside its timing)."""
     x0, R0 = prealign(model, meas)
     J = K.Chain(model, x0, meas.joints, R0).jacobian().reshape(-1, len(x0))
@@ -38,7 +74,7 @@ def peer_problem(model, meas):
     def fun(xs):
         x = x0.copy()
         x[idx] = xs
-        return ((meas.points - K.forward(model, x, meas.joints, R0)) / sigma[:, None]).ravel()
+        return ((meas.points - forward(model, x, meas.joints, R0)) / sigma[:, None]).ravel()
 
     return fun, x0[idx]
 
@@ -53,12 +89,16 @@ def run(sizes=(150, 2000), repeats=5) -> list[dict]:
         fun, xs0 = peer_problem(model, meas)
         peers = {}
         for method in ("trf", "lm"):
-            peers[method] = _best_time(lambda: scipy_least_squares(fun, xs0, jac="2-point", method=method,
-                                                                    x_scale="jac"), max(1, repeats // 2))
+            peers[f"{method}, 2-point FD, our vectorised FK"] = _best_time(
+                lambda: scipy_least_squares(fun, xs0, jac="2-point", method=method, x_scale="jac"), max(1, repeats // 2))
+        slow, xs0 = peer_problem(model, meas, per_pose_forward)
+        assert np.allclose(slow(xs0), fun(xs0), atol=1e-6)
+        peers["lm, 2-point FD, per-pose 4x4 FK"] = _best_time(
+            lambda: scipy_least_squares(slow, xs0, jac="2-point", method="lm", x_scale="jac"), 1)
         cost_ours = float((cal.solution.residual / tracker_sigma_mm(meas.points)[:, None]).ravel() @
                           (cal.solution.residual / tracker_sigma_mm(meas.points)[:, None]).ravel())
         for method, (t_peer, res) in peers.items():
-            rows.append({"poses": n, "peer": f"scipy least_squares {method}, 2-point FD", "ours_ms": 1e3 * t_ours,
+            rows.append({"poses": n, "peer": f"scipy least_squares {method}", "ours_ms": 1e3 * t_ours,
                          "peer_ms": 1e3 * t_peer, "ratio": t_peer / t_ours, "peer_nfev": res.nfev,
                          "ours_iter": cal.solution.iterations, "cost_ours": cost_ours, "cost_peer": 2 * res.cost})
     return rows

@@ -13,8 +13,9 @@ import numpy as np
 
 NONFUNCTIONAL_TOL = 1e-9
 """A column whose norm is below this fraction of the largest has no effect on the measured point."""
-REDUNDANT_TOL = 1e-7
-"""A normalised column whose part orthogonal to the kept ones is below this is redundant."""
+REDUNDANT_TOL = 1e-3
+"""A normalised column whose part orthogonal to the kept ones is below this is redundant: the pose set
+cannot tell it from the kept ones (their condition number would pass ~1e3)."""
 
 
 @dataclass(frozen=True)
