@@ -66,7 +66,7 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
         app.include_router(r)
 
     @app.get("/health", response_model=Health, tags=["health"], summary="Liveness and queue depth")
-    def health(s: Session = Depends(get_read_session)) -> Health:
+    def health(s: Session = Depends(get_read_session, scope="function")) -> Health:
         rows = s.execute(select(Job.status, func.count()).where(Job.status.in_(["queued", "running"]))
                          .group_by(Job.status)).all()
         jobs = {"queued": 0, "running": 0} | {k: int(v) for k, v in rows}

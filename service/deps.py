@@ -24,6 +24,8 @@ def get_db(request: Request) -> Database:
 
 
 def get_session(db: Database = Depends(get_db)) -> Iterator[Session]:
+    """One write transaction per request. Routes use it with scope="function", so the commit happens
+    before the response is sent: a 201/202 is only ever answered for data that is durably stored."""
     with db.session() as s:
         yield s
 

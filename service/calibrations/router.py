@@ -13,7 +13,7 @@ router = APIRouter(tags=["calibrations"])
 
 @router.get("/calibrations/{calibration_id}", response_model=CalibrationOut, responses=problem_responses(404),
             summary="Parameters, metrics and diagnosis of a calibration")
-def get_calibration(calibration_id: str, s: Session = Depends(get_read_session)) -> dict:
+def get_calibration(calibration_id: str, s: Session = Depends(get_read_session, scope="function")) -> dict:
     return service.answer(service.get_calibration(s, calibration_id))
 
 
@@ -23,7 +23,7 @@ def get_calibration(calibration_id: str, s: Session = Depends(get_read_session))
 def predict(calibration_id: str, body: PredictIn = Body(..., openapi_examples={"spray7": {
         "summary": "one pose of spray7 (mm, deg)",
         "value": {"joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}}}),
-        s: Session = Depends(get_read_session)) -> PredictOut:
+        s: Session = Depends(get_read_session, scope="function")) -> PredictOut:
     """Joints in the model's units and joint order; positions in the measurement (tracker) frame, model length unit."""
     c = service.get_calibration(s, calibration_id)
     positions, unit = service.predict(s, c, body.joints, body.payload)
@@ -37,7 +37,7 @@ def compensate(calibration_id: str, body: CompensateIn = Body(..., openapi_examp
         "summary": "one target with its nominal joint solution",
         "value": {"targets": [[-2821.34, 876.61, -16.36]],
                   "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}}}),
-        s: Session = Depends(get_read_session)):
+        s: Session = Depends(get_read_session, scope="function")):
     """Part of a later issue: answers 501 with a problem document once the calibration is known to exist."""
     service.get_calibration(s, calibration_id)
     raise ProblemError(501, "compensation is not implemented yet", kind="not-implemented")

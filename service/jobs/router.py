@@ -18,7 +18,7 @@ def create_job(response: Response, body: JobIn = Body(..., openapi_examples={
                       "value": {"measurement_set_id": "5d1c2a8e-8f1b-4d55-bb1e-0b1a7f6c9e21", "model": "geometric"}},
         "auto": {"summary": "geometric model plus diagnosis",
                  "value": {"measurement_set_id": "5d1c2a8e-8f1b-4d55-bb1e-0b1a7f6c9e21", "model": "auto"}}}),
-        s: Session = Depends(get_session), settings=Depends(get_settings)) -> JobOut:
+        s: Session = Depends(get_session, scope="function"), settings=Depends(get_settings)) -> JobOut:
     """The job is durable once this answers 202 (same transaction); poll `Location`."""
     j = service.enqueue(s, body.measurement_set_id, body.model, settings.max_attempts)
     response.headers["Location"] = f"/jobs/{j.id}"
@@ -27,5 +27,5 @@ def create_job(response: Response, body: JobIn = Body(..., openapi_examples={
 
 @router.get("/jobs/{job_id}", response_model=JobOut, responses=problem_responses(404),
             summary="A job's status and progress")
-def get_job(job_id: str, s: Session = Depends(get_read_session)) -> JobOut:
+def get_job(job_id: str, s: Session = Depends(get_read_session, scope="function")) -> JobOut:
     return JobOut.of(service.get_job(s, job_id))
