@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import kinematics as K
+from .effects import Context, Effect, apply, effect_from_state, effect_state
 from .identifiability import Identifiability, analyse
 from .io import Measurements
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, RobotModel
@@ -31,23 +32,47 @@ def tracker_sigma_mm(points_mm: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class CalibratedRobot:
-    """What a calibration leaves behind for prediction and compensation: the model and its parameters."""
+    """What a calibration leaves behind for prediction and compensation: model, parameters, effects."""
 
     model: RobotModel
-    x: np.ndarray  # full parameter vector, mm / rad
+    x: np.ndarray  # full geometric parameter vector, mm / rad
     R0: np.ndarray  # base reference rotation
+    effects: tuple[Effect, ...] = ()
+    effect_values: tuple[np.ndarray, ...] = ()
 
-    def predict(self, joints: np.ndarray) -> np.ndarray:
-        """Measured point (N, 3) mm in the measurement frame for joints (N, n) in internal units."""
-        return K.forward(self.model, self.x, joints, self.R0)
+    def effect_offsets(self, joints: np.ndarray, columns: Measurements | None = None):
+        """Joint offsets (N, n) and displacements (N, 3) mm of the identified effects at these joints."""
+        meas = _columns(joints, columns)
+        ctx = Context(self.model, K.Chain(self.model, self.x, joints, self.R0), meas)
+        return apply(list(self.effects), list(self.effect_values), ctx)
+
+    def predict(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
+        """Measured point (N, 3) mm in the measurement frame for joints (N, n) in internal units.
+
+        `columns` carries payload / temperature / timestamp where effects need them (else nominal: 0 kg,
+        the calibration's mean temperature and time)."""
+        joints = np.atleast_2d(np.asarray(joints, float))
+        if not self.effects:
+            return K.forward(self.model, self.x, joints, self.R0)
+        dq, dp = self.effect_offsets(joints, columns)
+        return K.forward(self.model, self.x, joints + dq, self.R0) + dp
 
     def to_state(self) -> dict:
         """JSON-able state; `from_state(model, state)` restores it exactly."""
-        return {"x": self.x.tolist(), "R0": self.R0.tolist()}
+        return {"x": self.x.tolist(), "R0": self.R0.tolist(),
+                "effects": [effect_state(e, v) for e, v in zip(self.effects, self.effect_values)]}
 
     @classmethod
     def from_state(cls, model: RobotModel, state: dict) -> "CalibratedRobot":
-        return cls(model, np.array(state["x"], float), np.array(state["R0"], float))
+        effects = [effect_from_state(d) for d in state.get("effects", [])]
+        return cls(model, np.array(state["x"], float), np.array(state["R0"], float),
+                   tuple(e for e, _ in effects), tuple(v for _, v in effects))
+
+
+def _columns(joints: np.ndarray, columns: Measurements | None) -> Measurements:
+    if columns is not None:
+        return columns
+    return Measurements(joints=joints, points=np.zeros((len(joints), 3)))
 
 
 @dataclass
@@ -57,33 +82,36 @@ class Calibration:
     model: RobotModel
     x: np.ndarray  # full parameter vector, mm / rad
     R0: np.ndarray  # base reference rotation
-    free: np.ndarray  # indices of the solved parameters
-    solution: Solution
+    free: np.ndarray  # indices of the solved geometric parameters
+    solution: Solution  # over [x[free], effect parameters]
     identifiability: Identifiability
     point_ids: list[str] = field(default_factory=list)
     holdout_residual_mm: np.ndarray | None = None  # (N,) cross-validated distance per pose
+    effects: tuple[Effect, ...] = ()
+
+    @property
+    def effect_values(self) -> tuple[np.ndarray, ...]:
+        return tuple(_split(self.solution.x[len(self.free):], self.effects, self.model))
 
     @property
     def robot(self) -> CalibratedRobot:
-        return CalibratedRobot(self.model, self.x, self.R0)
+        return CalibratedRobot(self.model, self.x, self.R0, self.effects, self.effect_values)
 
-    def predict(self, joints: np.ndarray) -> np.ndarray:
+    def predict(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
         """Measured point (N, 3) mm for joints (N, n) in internal units."""
-        return self.robot.predict(joints)
+        return self.robot.predict(joints, columns)
 
     def to_dict(self) -> dict:
         """The calibration answer of the contract (without the service's id)."""
         n = self.model.n_joints
         Rb, pb = self.base_pose()
-        ls = LENGTH_TO_MM[self.model.length_unit]
         return {
-            "model": ["geometric"],
+            "model": ["geometric"] + sorted({e.kind for e in self.effects}),
             "parameters": self.parameters(),
             "metrics": self.metrics(),
             "identifiability": self.identifiability.to_dict(),
             "base_pose": {"position_mm": pb.tolist(), "rotation_matrix": Rb.tolist()},
             "calibrated_model": self.model.to_dict(self.x[: 5 * n].reshape(n, 5), self.x[5 * n + 6:]),
-            "units": {"length": self.model.length_unit, "angle": self.model.angle_unit, "length_per_mm": 1 / ls},
         }
 
     @property
@@ -131,6 +159,12 @@ class Calibration:
             out.append({"name": self.names[i], "value": float(values[i] / scale),
                         "nominal": float(_nominal(m)[i] / scale) if i < 5 * n or i >= ib + 3 else None,
                         "std": float(std[i] / scale), "unit": m.angle_unit if ang[i] else m.length_unit})
+        k = len(self.free)
+        for e in self.effects:
+            for name, unit in zip(e.parameter_names(m), e.parameter_units(m)):
+                out.append({"name": name, "value": float(self.solution.x[k]), "nominal": 0.0,
+                            "std": float(self.solution.std[k]), "unit": unit, "effect": e.kind})
+                k += 1
         return out
 
 
@@ -171,18 +205,55 @@ def _select(names: list[str], ident: Identifiability, free: tuple[str, ...] | No
     return np.array(sorted(keep))
 
 
-def _fit(model, meas, sigma, x0, R0, idx, loss, regularize) -> Solution:
+def _split(theta: np.ndarray, effects, model) -> list[np.ndarray]:
+    sizes = np.cumsum([len(e.parameter_names(model)) for e in effects])[:-1] if effects else []
+    return np.split(theta, sizes) if effects else []
+
+
+def effect_bases(model, meas, effects, x, R0) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked bases of the effects at the poses: Phi_q (N, n, K) and Phi_p (N, 3, K)."""
+    N, n = meas.joints.shape
+    ctx = Context(model, K.Chain(model, x, meas.joints, R0), meas)
+    bq, bp = [], []
+    for e in effects:
+        b = e.basis(ctx)
+        k = len(e.parameter_names(model))
+        bq.append(b.joint if b.joint is not None else np.zeros((N, n, k)))
+        bp.append(b.cart if b.cart is not None else np.zeros((N, 3, k)))
+    return np.concatenate(bq, axis=2), np.concatenate(bp, axis=2)
+
+
+def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None) -> Solution:
+    """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian."""
     q, y = meas.joints, meas.points
-    prior_std = _prior_std(model)[idx]
+    p_geo = len(idx)
+    K_eff = 0 if bases is None else bases[0].shape[2]
+    geo_std = _prior_std(model)[idx] if regularize else np.full(p_geo, np.inf)
+    prior_std = np.r_[geo_std, effect_prior] if effect_prior is not None else np.r_[geo_std, np.full(K_eff, np.inf)]
 
     def residual_jac(xs):
         x = x0.copy()
-        x[idx] = xs
-        chain = K.Chain(model, x, q, R0)
-        return y - chain.p, chain.jacobian()[:, :, idx]
+        x[idx] = xs[:p_geo]
+        if not K_eff:
+            chain = K.Chain(model, x, q, R0)
+            return y - chain.p, chain.jacobian()[:, :, idx]
+        theta = xs[p_geo:]
+        Phi_q, Phi_p = bases
+        chain = K.Chain(model, x, q + Phi_q @ theta, R0)
+        J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
+        return y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
 
-    return least_squares(residual_jac, x0[idx], sigma, prior=x0[idx] if regularize else None,
-                         prior_std=prior_std if regularize else None, loss=loss)
+    start = np.r_[x0[idx], np.zeros(K_eff)]
+    use_prior = bool(np.isfinite(prior_std).any())
+    return least_squares(residual_jac, start, sigma, prior=start if use_prior else None,
+                         prior_std=prior_std if use_prior else None, loss=loss)
+
+
+def _effect_prior(model, effects) -> np.ndarray | None:
+    """Ridge prior std per effect parameter (inf = none); only smoothing fields carry one."""
+    if not effects:
+        return None
+    return np.concatenate([np.full(len(e.parameter_names(model)), getattr(e, "prior_std", np.inf)) for e in effects])
 
 
 def prealign(model: RobotModel, meas: Measurements) -> tuple[np.ndarray, np.ndarray]:
@@ -197,15 +268,19 @@ def identify(
     model: RobotModel,
     meas: Measurements,
     *,
+    effects: tuple[Effect, ...] = (),
     free: tuple[str, ...] | None = None,
     loss: str | None = None,
     regularize: bool = True,
     folds: int = 5,
+    x_ref: np.ndarray | None = None,
 ) -> Calibration:
-    """Identify the independent geometric parameters (restricted to names/prefixes in `free` if given).
+    """Identify the independent geometric parameters (restricted to names/prefixes in `free` if given)
+    jointly with the parameters of `effects`.
 
     sigma per pose comes from the CSV's `sigma` column or the laser-tracker model; `loss` is None,
-    'huber' or 'cauchy'; `folds` > 1 adds k-fold cross-validated held-out distances.
+    'huber' or 'cauchy'; `folds` > 1 adds k-fold cross-validated held-out distances. Effect bases are
+    evaluated on the geometry `x_ref` (default: a geometric-only fit of the same data).
     """
     n_min = 3
     if meas.n_poses < n_min:
@@ -216,16 +291,26 @@ def identify(
     J = K.Chain(model, x0, meas.joints, R0).jacobian().reshape(-1, len(x0))
     ident = analyse(J, names)
     idx = _select(names, ident, free)
-    if 3 * meas.n_poses <= len(idx):
-        raise ValueError(f"{meas.n_poses} poses give {3 * meas.n_poses} equations for {len(idx)} parameters; "
-                         "measure more poses")
-    sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize)
+    n_eff = sum(len(e.parameter_names(model)) for e in effects)
+    if 3 * meas.n_poses <= len(idx) + n_eff:
+        raise ValueError(f"{meas.n_poses} poses give {3 * meas.n_poses} equations for {len(idx) + n_eff} "
+                         "parameters; measure more poses")
+    bases = None
+    if effects:
+        if x_ref is None:
+            geo = _fit(model, meas, sigma, x0, R0, idx, loss, regularize)
+            x_ref = x0.copy()
+            x_ref[idx] = geo.x
+        bases = effect_bases(model, meas, effects, x_ref, R0)
+    eprior = _effect_prior(model, effects)
+    sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior)
     x = x0.copy()
-    x[idx] = sol.x
+    x[idx] = sol.x[: len(idx)]
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
-                      point_ids=list(meas.point_ids))
+                      point_ids=list(meas.point_ids), effects=tuple(effects))
     if folds > 1 and meas.n_poses >= 2 * folds:
-        cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds)
+        cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
+                                                 eprior)
     return cal
 
 
@@ -234,20 +319,28 @@ def fold_ids(n_poses: int, folds: int) -> np.ndarray:
     return np.random.default_rng(12345).permutation(n_poses) % folds
 
 
-def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds) -> np.ndarray:
+def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases=None,
+                   effect_prior=None) -> np.ndarray:
     """Distance (mm) of every pose to the model fitted on the other folds."""
     assign = fold_ids(meas.n_poses, folds)
     out = np.empty(meas.n_poses)
     for k in range(folds):
         train, test = assign != k, assign == k
-        sol = _fit(model, meas.subset(train), sigma[train], x0, R0, idx, loss, regularize)
+        sub = None if bases is None else (bases[0][train], bases[1][train])
+        sol = _fit(model, meas.subset(train), sigma[train], x0, R0, idx, loss, regularize, sub, effect_prior)
         x = x0.copy()
-        x[idx] = sol.x
-        out[test] = np.linalg.norm(meas.points[test] - K.forward(model, x, meas.joints[test], R0), axis=1)
+        x[idx] = sol.x[: len(idx)]
+        q = meas.joints[test]
+        if bases is None:
+            pred = K.forward(model, x, q, R0)
+        else:
+            theta = sol.x[len(idx):]
+            pred = K.forward(model, x, q + bases[0][test] @ theta, R0) + bases[1][test] @ theta
+        out[test] = np.linalg.norm(meas.points[test] - pred, axis=1)
     return out
 
 
-def evaluate(cal: Calibration, meas: Measurements) -> dict:
+def evaluate(cal: Calibration | CalibratedRobot, meas: Measurements) -> dict:
     """Error of a calibration on other (held-out) measurements: rms, mean, max distance in mm."""
-    d = np.linalg.norm(meas.points - cal.predict(meas.joints), axis=1)
+    d = np.linalg.norm(meas.points - cal.predict(meas.joints, meas), axis=1)
     return {"n_poses": int(len(d)), "rms_mm": _rms(d), "mean_mm": float(d.mean()), "max_mm": float(d.max())}

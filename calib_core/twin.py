@@ -10,6 +10,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import kinematics as K
+from .effects import Context, Effect, apply
 from .identifiability import analyse
 from .identify import tracker_sigma_mm
 from .io import Measurements
@@ -71,7 +72,52 @@ class Twin:
         self.x_true = x
         self.repeatability_mm = repeatability_mm
         self.tracker_noise = tracker_noise
+        self.effects: list[tuple[Effect, np.ndarray]] = []
+        self.start_time = 1_793_700_000.0  # a campaign start (2026-11-02), 20 s per pose
 
+    def hide(self, effect: Effect, values) -> None:
+        """Give the physical robot an effect the calibration does not know about."""
+        self.effects.append((effect, np.asarray(values, float)))
+
+    def columns(self, joints: np.ndarray, payload_kg=None, temperature: bool = False) -> Measurements:
+        """The non-positional columns of a measurement campaign: time, optional warming and payload."""
+        N = len(joints)
+        t = self.start_time + 20.0 * np.arange(N)
+        payload = None if payload_kg is None else np.asarray(
+            self.rng.choice(np.atleast_1d(payload_kg), N) if np.ndim(payload_kg) else np.full(N, payload_kg), float)
+        temp = 20.0 + 6.0 * (1 - np.exp(-(t - t[0]) / 5400.0)) if temperature else None
+        return Measurements(joints=joints, points=np.zeros((N, 3)), timestamp=t, temperature=temp, payload=payload)
+
+    def displacement(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
+        """What the hidden effects add to the tool point at these poses, (N, 3) mm."""
+        meas = columns or self.columns(joints)
+        return self._true(meas) - self.true_points(joints)
+
+    def _true(self, meas: Measurements) -> np.ndarray:
+        q = meas.joints
+        if not self.effects:
+            return K.forward(self.model, self.x_true, q, self.R0)
+        ctx = Context(self.model, K.Chain(self.model, self.x_true, q, self.R0), meas)
+        dq, dp = apply([e for e, _ in self.effects], [v for _, v in self.effects], ctx)
+        return K.forward(self.model, self.x_true, q + dq, self.R0) + dp
+
+    def unexplained_rms(self, effect: Effect, values, meas: Measurements) -> float:
+        """RMS (mm) of the part of an effect's displacement that no geometric parameter can absorb."""
+        ctx = Context(self.model, K.Chain(self.model, self.x_true, meas.joints, self.R0), meas)
+        dq, dp = apply([effect], [np.asarray(values, float)], ctx)
+        d = (np.einsum("nij,nj->ni", ctx.chain.joint_jacobian(), dq) + dp).ravel()
+        J = ctx.chain.jacobian().reshape(len(d), -1)
+        rest = d - J @ np.linalg.lstsq(J, d, rcond=None)[0]
+        return float(np.sqrt(np.mean((rest.reshape(-1, 3) ** 2).sum(1))))
+
+    def hide_scaled(self, effect: Effect, direction, n_noise: float, meas: Measurements) -> np.ndarray:
+        """Hide `effect` along `direction` sized so its unexplainable RMS is n_noise times the noise RMS."""
+        direction = np.asarray(direction, float)
+        unit = self.unexplained_rms(effect, direction, meas)
+        values = direction * n_noise * self.noise_rms_mm(meas.points if meas.points.any() else
+                                                         self.true_points(meas.joints)) / unit
+        self.hide(effect, values)
+        return values
     def true_points(self, joints: np.ndarray) -> np.ndarray:
         """Where the physical robot puts the tool point, mm in the tracker frame, without noise."""
         return K.forward(self.model, self.x_true, joints, self.R0)
@@ -79,15 +125,22 @@ class Twin:
     def sample_joints(self, n: int) -> np.ndarray:
         return sample_uniform(self.model, n, self.rng)
 
-    def measure(self, joints: np.ndarray | None = None, n: int = 150) -> Measurements:
-        """Measure the physical robot at `joints` (internal units) or at n random poses."""
+    def measure(self, joints: np.ndarray | None = None, n: int = 150, payload_kg=None,
+                temperature: bool = False) -> Measurements:
+        """Measure the physical robot at `joints` (internal units) or at n random poses.
+
+        payload_kg: None (no column), a value, or a list to draw from per pose; temperature adds a
+        warming-up temperature column. Every campaign has timestamps."""
         q = self.sample_joints(n) if joints is None else np.asarray(joints, float)
-        p = self.true_points(q)
+        meas = self.columns(q, payload_kg, temperature)
+        p = self._true(meas)
         N = len(q)
         p = p + self.rng.normal(0.0, self.repeatability_mm, (N, 3))
         if self.tracker_noise:
             p = p + self.rng.normal(0.0, 1.0, (N, 3)) * tracker_sigma_mm(p)[:, None]
-        return Measurements(joints=q, points=p, point_ids=[f"P{i + 1:04d}" for i in range(N)])
+        meas.points = p
+        meas.point_ids = [f"P{i + 1:04d}" for i in range(N)]
+        return meas
 
     def noise_rms_mm(self, points_mm: np.ndarray) -> float:
         """Expected RMS 3-D distance of a perfect model to measurements at these points (noise only)."""

@@ -1,0 +1,87 @@
+"""The one shape of every effect: named parameters and a pose-dependent basis that is linear in them.
+
+An effect adds joint offsets dq = Phi_q @ theta (N, n) and/or a Cartesian displacement
+dp = Phi_p @ theta (N, 3, measurement frame, mm). Identification stacks J_q Phi_q + Phi_p beside the
+geometric Jacobian (the rigid-flexible coupled Jacobian of Wang et al. 2023, section 5.2); the twin
+uses the same objects with hidden values to make data; compensation includes whatever was found.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from ..io import Measurements
+from ..kinematics import Chain
+from ..model import RobotModel
+from ..statics import joint_loads
+
+
+@dataclass
+class Context:
+    """What an effect may look at: the model, the poses' kinematic chain and the measurement columns."""
+
+    model: RobotModel
+    chain: Chain
+    meas: Measurements
+
+    @cached_property
+    def loads(self) -> np.ndarray:
+        """Gravity + payload load on every joint, (N, n), N*m or N."""
+        return joint_loads(self.chain, self.meas.payload_kg())
+
+
+@dataclass(frozen=True)
+class Basis:
+    joint: np.ndarray | None  # (N, n, k) joint offset per unit parameter (rad or mm)
+    cart: np.ndarray | None  # (N, 3, k) displacement per unit parameter, mm, measurement frame
+    regressor: np.ndarray  # (N,) the per-pose quantity the effect follows (for evidence and plots)
+    regressor_label: str
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A candidate cause acting on `joints` (model joint indices); subclasses set kind and the basis."""
+
+    joints: tuple[int, ...]
+    harmonic: int | None = field(default=None)
+    kind = "effect"
+    needs = "nothing"
+
+    def label(self, model: RobotModel) -> str:
+        names = ",".join(model.joint_names[j] for j in self.joints) or "robot"
+        return f"{self.kind}[{names}{'' if self.harmonic is None else f', h{self.harmonic}'}]"
+
+    def parameter_names(self, model: RobotModel) -> list[str]:
+        raise NotImplementedError
+
+    def parameter_units(self, model: RobotModel) -> list[str]:
+        raise NotImplementedError
+
+    def basis(self, ctx: Context) -> Basis:
+        raise NotImplementedError
+
+    def explain(self, model: RobotModel) -> str:
+        """One phrase a process engineer can read."""
+        raise NotImplementedError
+
+
+def joint_basis(n_poses: int, n_joints: int, j: int, columns: np.ndarray) -> np.ndarray:
+    """(N, n, k) basis with the k columns (N, k) acting on joint j only."""
+    out = np.zeros((n_poses, n_joints, columns.shape[1]))
+    out[:, j, :] = columns
+    return out
+
+
+def apply(effects: list[Effect], values: list[np.ndarray], ctx: Context) -> tuple[np.ndarray, np.ndarray]:
+    """Total joint offsets (N, n) and displacement (N, 3) of effects with the given parameter values."""
+    N, n = ctx.meas.joints.shape
+    dq, dp = np.zeros((N, n)), np.zeros((N, 3))
+    for e, v in zip(effects, values):
+        b = e.basis(ctx)
+        if b.joint is not None:
+            dq += b.joint @ v
+        if b.cart is not None:
+            dp += b.cart @ v
+    return dq, dp

@@ -1,0 +1,52 @@
+"""Gravity and payload loads on every joint and link, vectorised over poses (what compliance models need).
+
+Masses in kg, gravity in m/s^2 (given in the robot base frame), lengths in mm; torques come out in N*m
+(forces on prismatic joints in N). Body j is the body moved by joint j, its COM given in joint frame j.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .kinematics import Chain, _cross
+
+
+def gravity_world(chain: Chain) -> np.ndarray:
+    """Gravity (3,) m/s^2 in the measurement frame."""
+    return chain.Rb @ chain.model.gravity
+
+
+def _com_world(chain: Chain) -> np.ndarray:
+    """COM of every body in the measurement frame, (n, N, 3) mm."""
+    return chain.o_beta + np.einsum("jnab,jb->jna", chain.R, chain.model.com)
+
+
+def distal_loads(chain: Chain, payload_kg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mass (n, N) kg and first moment (n, N, 3) kg*mm of everything beyond joint j (bodies j..n, payload)."""
+    m = chain.model.mass
+    com = _com_world(chain)
+    first = m[:, None, None] * com
+    M = np.cumsum(m[::-1])[::-1][:, None] + payload_kg[None, :]
+    S = np.cumsum(first[::-1], axis=0)[::-1] + payload_kg[None, :, None] * chain.p[None]
+    return M, S
+
+
+def joint_loads(chain: Chain, payload_kg: np.ndarray) -> np.ndarray:
+    """Gravity torque about each revolute axis (N*m) or force along each prismatic axis (N), shape (N, n).
+
+    Sign convention: the load a positive joint motion works against is negative.
+    """
+    if chain.model.mass is None:
+        raise ValueError("the model has no masses and centres of mass: no gravity model is possible")
+    g = gravity_world(chain)
+    M, S = distal_loads(chain, payload_kg)
+    moment = _cross(S - M[..., None] * chain.o_theta, np.broadcast_to(g, S.shape)) / 1000.0  # N*m
+    torque = np.einsum("jna,jna->jn", moment, chain.z_axis)
+    force = M * np.einsum("jna,a->jn", chain.z_axis, g)
+    return np.where(chain.model.prismatic[:, None], force, torque).T
+
+
+def segment(chain: Chain, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The link segment ending at joint k: start (N, 3), end (N, 3) and length (N,) mm."""
+    start = chain.o_beta[k - 1] if k > 0 else np.broadcast_to(chain.base_origin, chain.p.shape)
+    end = chain.o_beta[k]
+    return start, end, np.linalg.norm(end - start, axis=1)
