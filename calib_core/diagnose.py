@@ -23,7 +23,8 @@ from .model import RobotModel
 ALPHA = 0.01
 """Family-wise false-alarm rate of one search round (Bonferroni over the candidates)."""
 FLOOR_FACTOR = 1.0
-"""A cause whose unexplained RMS is below FLOOR_FACTOR x noise floor is not a finding."""
+"""A cause whose unexplained RMS, in the fit and on held-out poses (sqrt of the drop in mean square error),
+is below FLOOR_FACTOR x noise floor is not a finding."""
 DEFAULT_REPEATABILITY_MM = 0.02
 """Pose repeatability assumed when the data holds no repeated poses (ISO 9283 RP of an industrial robot)."""
 MAX_FINDINGS = 5
@@ -209,14 +210,17 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                                         f"below the noise floor {floor:.3f} mm"})
                 continue
             trial = identify(model, meas, effects=tuple(chosen + [c.effect]), loss=loss, folds=folds, x_ref=x_ref)
-            if trial.metrics()["holdout_rms_mm"] >= current.metrics()["holdout_rms_mm"]:
+            hb, ha = current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
+            if hb**2 - ha**2 < (FLOOR_FACTOR * floor) ** 2:
                 rejected.append({"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
-                                 "why": "significant in the fit but no gain on held-out poses"})
+                                 "why": f"significant in the fit, but on held-out poses it removes less than the "
+                                        f"noise floor ({hb:.3f} -> {ha:.3f} mm)"})
                 continue
             findings.append(_finding(c, model, current, trial, floor))
             chosen.append(c.effect)
             pool = [e for e in pool if e != c.effect]
             current, accepted = trial, True
+            x_ref = trial.x  # later bases (loads, frames) on the better geometry
             break
         if not accepted:
             break
@@ -228,6 +232,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             if trial.metrics()["holdout_rms_mm"] < 0.9 * current.metrics()["holdout_rms_mm"]:
                 findings.append(_unexplained_finding(model, current, trial, rf, floor))
                 current = trial
+    if chosen:  # one last joint fit with every basis on the final geometry
+        current = identify(model, meas, effects=current.effects, loss=loss, folds=folds, x_ref=current.x)
     d = Diagnosis(calibration=current, geometric=geo, noise_floor_mm=floor, noise_note=note, findings=findings,
                   rejected=rejected, notes=notes)
     d.explanation = explain(d, model)
