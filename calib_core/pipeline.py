@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+from .diagnose import diagnose
 from .identify import identify
 from .io import Measurements
 from .model import RobotModel
@@ -14,16 +15,21 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
               progress: Callable[[float, str], None] | None = None) -> dict:
     """Identify the model from the measurements; returns the answer dict plus `robot_state` for persistence.
 
-    mode 'geometric' identifies the geometric model; 'auto' also runs the diagnosis (not yet available).
+    mode 'geometric' identifies the geometric model; 'auto' also diagnoses the residual and extends the
+    model with every cause it finds (the answer then carries the contract's `diagnosis` block).
     """
     if mode not in MODES:
         raise ValueError(f"unknown model {mode!r}; use one of {MODES}")
-    if mode == "auto":
-        raise NotImplementedError("model 'auto' (diagnosis of hidden effects) is not available yet; use 'geometric'")
     report = progress or (lambda fraction, message: None)
-    report(0.05, "identifying the geometric model")
-    cal = identify(model, meas)
+    if mode == "auto":
+        d = diagnose(model, meas, progress=report)
+        cal = d.calibration
+        out = cal.to_dict()
+        out["diagnosis"] = d.to_dict()
+    else:
+        report(0.05, "identifying the geometric model")
+        cal = identify(model, meas)
+        out = cal.to_dict()
     report(1.0, "done")
-    out = cal.to_dict()
     out["robot_state"] = cal.robot.to_state()
     return out
