@@ -48,8 +48,41 @@ class ProblemDoc(BaseModel):
 
 
 def problem_responses(*codes: int) -> dict:
-    """OpenAPI `responses` entries for problem documents."""
-    return {c: {"model": ProblemDoc, "content": {PROBLEM: {}}, "description": HTTPStatus(c).phrase} for c in codes}
+    """OpenAPI `responses` entries for problem documents (content filled in by `problem_openapi`)."""
+    return {c: {"description": HTTPStatus(c).phrase} for c in codes}
+
+
+def problem_openapi(app: FastAPI) -> None:
+    """Document every error response as application/problem+json with the ProblemDoc schema, and 422 on every
+    operation that takes input (FastAPI's default 422 schema is replaced: it never answers with it)."""
+    base_openapi = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema:
+            return app.openapi_schema
+        spec = base_openapi()
+        comps = spec.setdefault("components", {}).setdefault("schemas", {})
+        comps.pop("HTTPValidationError", None)
+        comps.pop("ValidationError", None)
+        comps["ProblemDoc"] = ProblemDoc.model_json_schema(ref_template="#/components/schemas/{model}")
+        ref = {"$ref": "#/components/schemas/ProblemDoc"}
+        example = ProblemDoc.model_config["json_schema_extra"]["example"]
+        for path, ops in spec.get("paths", {}).items():
+            for method, op in ops.items():
+                responses = op.setdefault("responses", {})
+                if op.get("parameters") or op.get("requestBody"):
+                    responses.setdefault("422", {"description": HTTPStatus(422).phrase})
+                for code, resp in responses.items():
+                    if code[0] in "45":
+                        ex = example if code == "422" else {"type": "about:blank", "title": HTTPStatus(int(code)).phrase,
+                                                            "status": int(code), "detail": "...", "instance": path}
+                        resp["content"] = {PROBLEM: {"schema": ref, "example": ex}}
+                        if resp.get("description") == "Validation Error":
+                            resp["description"] = HTTPStatus(422).phrase
+        app.openapi_schema = spec
+        return spec
+
+    app.openapi = openapi
 
 
 def json_safe(v: Any) -> Any:
@@ -94,6 +127,8 @@ def _loc(loc) -> str:
 
 
 def install(app: FastAPI) -> None:
+    problem_openapi(app)
+
     @app.exception_handler(ProblemError)
     async def _problem(request: Request, exc: ProblemError):
         return problem_response(request, exc.status, exc.detail, kind=exc.kind, title=exc.title,

@@ -38,7 +38,7 @@ def upload(robot_id: str, response: Response, file: UploadFile = File(..., descr
 
 @router.get("/robots/{robot_id}/measurements", response_model=list[MeasurementSetOut],
             responses=problem_responses(404), summary="The measurement sets of a robot, oldest first")
-def list_sets(robot_id: str, limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0),
+def list_sets(robot_id: str, limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0, le=2**31),
               s: Session = Depends(get_read_session, scope="function")) -> list[MeasurementSetOut]:
     return [MeasurementSetOut.of(m) for m in service.list_for_robot(s, robot_id, limit, offset)]
 

@@ -26,7 +26,7 @@ def create_robot(response: Response, doc: dict[str, Any] = Body(..., openapi_exa
 
 
 @router.get("/robots", response_model=list[RobotOut], summary="The stored robot models, oldest first")
-def list_robots(limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0),
+def list_robots(limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0, le=2**31),
                 s: Session = Depends(get_read_session, scope="function")) -> list[RobotOut]:
     return [RobotOut.of(r) for r in service.list_robots(s, limit, offset)]
 
