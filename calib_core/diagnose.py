@@ -2,7 +2,7 @@
 
 Greedy and repeated: at the current model (geometry + effects found so far) every candidate cause is
 scored by the linearised F-test of adding its columns to the coupled Jacobian (Bonferroni over the
-candidates); the best significant one whose unexplained size is at least the noise floor is refitted
+candidates) and ranked by BIC; the best significant one whose unexplained size is at least the noise floor is refitted
 jointly with everything else, kept if its k-fold held-out RMS improves, and the search looks again.
 """
 from __future__ import annotations
@@ -27,6 +27,9 @@ FLOOR_FACTOR = 1.0
 is below FLOOR_FACTOR x noise floor is not a finding."""
 DEFAULT_REPEATABILITY_MM = 0.02
 """Pose repeatability assumed when the data holds no repeated poses (ISO 9283 RP of an industrial robot)."""
+MIN_EXCESS_FRACTION = 0.2
+"""A named cause must remove at least this fraction of the held-out mean square error above the floor;
+smaller shares are what a wrong cause picks up from a true one outside the vocabulary."""
 MAX_FINDINGS = 5
 UNEXPLAINED_RATIO = 1.25
 """Held-out RMS above this multiple of the floor after the named causes means structure is left."""
@@ -70,6 +73,7 @@ class Candidate:
     log_p: float
     F: float
     explained: float  # fraction of the weighted residual sum of squares it explains
+    bic: float  # Bayesian information criterion of the model with it: ranks candidates past p underflow
     effect_rms_mm: float  # RMS of the part of its displacement the current model cannot absorb
     regressor: np.ndarray
     regressor_label: str
@@ -158,10 +162,10 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
         res_mm = r.reshape(-1, 3) * sigma[:, None]
         out.append(Candidate(
             effect=e, label=e.label(model), p_value=float(np.exp(log_p)), log_p=log_p, F=float(F),
-            explained=drss / rss, effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
+            explained=drss / rss, bic=m * np.log(max(rss - drss, 1e-300) / m) + k * np.log(m), effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
             regressor=b.regressor, regressor_label=b.regressor_label,
             projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
-    return sorted(out, key=lambda c: c.log_p)
+    return sorted(out, key=lambda c: c.bic)
 
 
 def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibration, floor: float) -> dict:
@@ -203,7 +207,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         accepted = False
         for c in ranked:
             if c.log_p > threshold:
-                break
+                continue
             if c.effect_rms_mm < FLOOR_FACTOR * floor:
                 rejected.append({"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
                                  "why": f"significant (p = {c.p_value:.1e}) but {c.effect_rms_mm:.3f} mm RMS is "
@@ -211,10 +215,11 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 continue
             trial = identify(model, meas, effects=tuple(chosen + [c.effect]), loss=loss, folds=folds, x_ref=x_ref)
             hb, ha = current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
-            if hb**2 - ha**2 < (FLOOR_FACTOR * floor) ** 2:
+            drop = hb**2 - ha**2
+            if drop < (FLOOR_FACTOR * floor) ** 2 or drop < MIN_EXCESS_FRACTION * (hb**2 - floor**2):
                 rejected.append({"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
-                                 "why": f"significant in the fit, but on held-out poses it removes less than the "
-                                        f"noise floor ({hb:.3f} -> {ha:.3f} mm)"})
+                                 "why": f"significant in the fit, but on held-out poses it removes too little "
+                                        f"({hb:.3f} -> {ha:.3f} mm, noise floor {floor:.3f} mm)"})
                 continue
             findings.append(_finding(c, model, current, trial, floor))
             chosen.append(c.effect)
@@ -247,8 +252,8 @@ def _unexplained_finding(model, before, after, rf: ResidualField, floor) -> dict
             "gain_pct": 100.0 * (hb - ha) / hb,
             "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still "
                          f"{hb / floor:.1f}x the noise floor ({floor:.3f} mm) and no named cause explains it; "
-                         f"a smooth joint-space correction field ({rf.n_features} random Fourier features, "
-                         f"length scale {rf.length_scale:g}) fitted jointly with the geometry brings it to {ha:.3f} mm"),
+                         f"a smooth joint-space correction field ({rf.describe()}) fitted jointly with the "
+                         f"geometry brings it to {ha:.3f} mm"),
             "parameters": []}
 
 

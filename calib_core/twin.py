@@ -6,11 +6,13 @@ and every measurement carries repeatability noise and tracker noise (15 um + 6 u
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import kinematics as K
-from .effects import Context, Effect, apply
+from .effects import Basis, Context, Effect, apply
 from .identifiability import analyse
 from .identify import tracker_sigma_mm
 from .io import Measurements
@@ -101,13 +103,14 @@ class Twin:
         dq, dp = apply([e for e, _ in self.effects], [v for _, v in self.effects], ctx)
         return K.forward(self.model, self.x_true, q + dq, self.R0) + dp
 
-    def unexplained_rms(self, effect: Effect, values, meas: Measurements) -> float:
-        """RMS (mm) of the part of an effect's displacement that no geometric parameter can absorb."""
+    def unexplained_rms(self, effect: Effect, values, meas: Measurements, absorb: bool = True) -> float:
+        """RMS (mm) of the part of an effect's displacement that no geometric parameter can absorb
+        (all of it with absorb=False)."""
         ctx = Context(self.model, K.Chain(self.model, self.x_true, meas.joints, self.R0), meas)
         dq, dp = apply([effect], [np.asarray(values, float)], ctx)
         d = (np.einsum("nij,nj->ni", ctx.chain.joint_jacobian(), dq) + dp).ravel()
         J = ctx.chain.jacobian().reshape(len(d), -1)
-        rest = d - J @ np.linalg.lstsq(J, d, rcond=None)[0]
+        rest = d - J @ np.linalg.lstsq(J, d, rcond=None)[0] if absorb else d
         return float(np.sqrt(np.mean((rest.reshape(-1, 3) ** 2).sum(1))))
 
     def hide_scaled(self, effect: Effect, direction, n_noise: float, meas: Measurements) -> np.ndarray:
@@ -146,3 +149,53 @@ class Twin:
         """Expected RMS 3-D distance of a perfect model to measurements at these points (noise only)."""
         tracker = tracker_sigma_mm(points_mm) ** 2 if self.tracker_noise else 0.0
         return float(np.sqrt(3 * np.mean(self.repeatability_mm**2 + tracker)))
+
+
+@dataclass(frozen=True)
+class BaseSway(Effect):
+    """Off-vocabulary cause for blind tests: the tool point sways with one joint's angle (cable drag, a
+    soft foundation), 1st and 2nd harmonic in two fixed directions. No named cause of the diagnosis has
+    this shape, so it must come out as `unexplained`."""
+
+    kind = "base_sway"
+
+    def parameter_names(self, model):
+        return ["sway.a1", "sway.a2"]
+
+    def parameter_units(self, model):
+        return ["mm", "mm"]
+
+    def basis(self, ctx: Context) -> Basis:
+        q = ctx.meas.joints[:, self.joints[0]]
+        cart = np.zeros((len(q), 3, 2))
+        cart[:, :, 0] = np.sin(q + 0.3)[:, None] * np.array([1.0, 0.0, 0.5])
+        cart[:, :, 1] = np.cos(2 * q - 0.5)[:, None] * np.array([0.0, 1.0, -0.3])
+        return Basis(None, cart, q, "joint angle (rad)")
+
+
+HIDDEN_KINDS = ("joint_compliance", "link_deflection", "cyclic_joint_error", "backlash", "joint_scale",
+                "axis_straightness", "thermal_drift", "unexplained")
+
+
+def draw_hidden_effect(twin: "Twin", kind: str, n_noise: float, joints: np.ndarray, rng: np.random.Generator,
+                       min_observable: float = 0.2) -> tuple[Effect, np.ndarray]:
+    """Hide one effect of `kind` on a randomly drawn eligible joint, in a random direction, sized so that
+    its part no geometric parameter can absorb is n_noise x the noise RMS. Returns (effect, values)."""
+    from .effects import candidates
+
+    meas = twin.columns(joints, temperature=kind == "thermal_drift")
+    if kind == "unexplained":
+        pool = [BaseSway((j,)) for j in range(twin.model.n_joints) if not twin.model.prismatic[j]]
+    else:
+        pool = [e for e in candidates(twin.model, meas)[0] if e.kind == kind]
+    rng.shuffle(pool)
+    for effect in pool:
+        k = len(effect.parameter_names(twin.model))
+        direction = rng.normal(size=k)
+        if kind == "thermal_drift":
+            direction[3] *= 1e-3  # strain per degree against mm per degree: comparable sizes
+        direction /= np.linalg.norm(direction)
+        total = twin.unexplained_rms(effect, direction, meas, absorb=False)
+        if total > 0 and twin.unexplained_rms(effect, direction, meas) > min_observable * total:
+            return effect, twin.hide_scaled(effect, direction, n_noise, meas)
+    raise ValueError(f"no joint of {twin.model.name} can show {kind}")

@@ -1,10 +1,11 @@
 """Structure no named cause explains: a smooth correction field over joint space, the same plug-in shape.
 
-dp(q) = W phi(q), phi = random Fourier features of [cos q, sin q] (revolute) and scaled travel (prismatic),
-i.e. a kernel (Gaussian-process) regression of the residual, fitted jointly with the geometry with a ridge
-prior on W. It beats a back-propagation network (the baseline of Wang et al., 8-DoF robot) on the same
-footing: it is linear in its weights, so the solver, the covariance and the compensation treat it like
-any other effect, and its length scale and ridge are chosen by held-out error.
+dp(q) = W phi(q), with phi = per-joint harmonics (cos h q_j, sin h q_j, h = 1, 2; Legendre terms of the
+travel for prismatic joints) plus random Fourier features of [cos q, sin q, travel] for interactions:
+an additive-plus-kernel (Gaussian-process) regression of the residual, fitted jointly with the geometry
+with a ridge prior on W. It is linear in its weights, so the solver, the covariance and the compensation
+treat it like any other effect; its length scale is chosen by held-out error. This is the nonparametric
+baseline of Wang et al. (back-propagation network over joint-angle regions) done the calibrated way.
 """
 from __future__ import annotations
 
@@ -14,40 +15,55 @@ import numpy as np
 
 from .base import Basis, Context, Effect
 
+LENGTH_SCALES = (None, 1.0, 2.0)
+"""None: additive harmonics only; otherwise also random Fourier features of that length scale."""
 N_FEATURES = 48
-LENGTH_SCALES = (0.5, 1.0, 2.0)
 PRIOR_STD_MM = 0.5
+
+
+def _scaled(model, q):
+    lo, hi = model.limits[:, 0], model.limits[:, 1]
+    return (q - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
 
 
 @dataclass(frozen=True)
 class ResidualField(Effect):
-    """A smooth Cartesian correction over joint space (3 x n_features weights, mm)."""
+    """A smooth Cartesian correction over joint space; weights in mm."""
 
     kind = "unexplained"
-    length_scale: float = 1.0
+    length_scale: float | None = None
     n_features: int = N_FEATURES
     seed: int = 0
     prior_std: float = PRIOR_STD_MM
 
-    def parameter_names(self, model):
-        return [f"field.{a}{k}" for a in "xyz" for k in range(self.n_features)]
-
-    def parameter_units(self, model):
-        return ["mm"] * (3 * self.n_features)
-
-    def _features(self, model, q):
-        lo, hi = model.limits[:, 0], model.limits[:, 1]
-        z = []
+    def _features(self, model, q) -> np.ndarray:
+        cols, z = [], []
         for j in range(model.n_joints):
             if model.prismatic[j]:
-                z.append((q[:, j] - 0.5 * (lo[j] + hi[j])) / (0.5 * (hi[j] - lo[j])))
+                s = _scaled(model, q)[:, j]
+                cols += [s, 1.5 * s**2 - 0.5, 2.5 * s**3 - 1.5 * s]
+                z.append(s)
             else:
+                cols += [f(h * q[:, j]) for h in (1, 2) for f in (np.cos, np.sin)]
                 z += [np.cos(q[:, j]), np.sin(q[:, j])]
-        z = np.column_stack(z)
-        rng = np.random.default_rng(self.seed)
-        omega = rng.normal(0.0, 1.0 / self.length_scale, (z.shape[1], self.n_features))
-        phase = rng.uniform(0, 2 * np.pi, self.n_features)
-        return np.sqrt(2.0 / self.n_features) * np.cos(z @ omega + phase)
+        phi = np.column_stack(cols)
+        if self.length_scale is not None:
+            z = np.column_stack(z)
+            rng = np.random.default_rng(self.seed)
+            omega = rng.normal(0.0, 1.0 / self.length_scale, (z.shape[1], self.n_features))
+            phase = rng.uniform(0, 2 * np.pi, self.n_features)
+            phi = np.column_stack([phi, np.sqrt(2.0 / self.n_features) * np.cos(z @ omega + phase)])
+        return phi
+
+    def _n(self, model) -> int:
+        per_joint = sum(3 if p else 4 for p in model.prismatic)
+        return per_joint + (self.n_features if self.length_scale is not None else 0)
+
+    def parameter_names(self, model):
+        return [f"field.{a}{k}" for a in "xyz" for k in range(self._n(model))]
+
+    def parameter_units(self, model):
+        return ["mm"] * (3 * self._n(model))
 
     def basis(self, ctx: Context) -> Basis:
         phi = self._features(ctx.model, ctx.meas.joints)  # (N, F)
@@ -56,6 +72,11 @@ class ResidualField(Effect):
         for a in range(3):
             cart[:, a, a * F:(a + 1) * F] = phi
         return Basis(None, cart, np.zeros(N), "")
+
+    def describe(self) -> str:
+        inter = "" if self.length_scale is None else f" plus {self.n_features} random Fourier features " \
+                                                      f"(length scale {self.length_scale:g})"
+        return f"per-joint harmonics{inter}"
 
     def explain(self, model):
         return "a smooth error over joint space that no named cause explains"
