@@ -30,6 +30,8 @@ DEFAULT_REPEATABILITY_MM = 0.02
 MIN_EXCESS_FRACTION = 0.2
 """A named cause must remove at least this fraction of the held-out mean square error above the floor;
 smaller shares are what a wrong cause picks up from a true one outside the vocabulary."""
+NAMED_SHARE = 0.4
+"""A named cause must explain at least this share of what a smooth joint-space field explains."""
 MAX_FINDINGS = 5
 UNEXPLAINED_RATIO = 1.25
 """Held-out RMS above this multiple of the floor after the named causes means structure is left."""
@@ -128,9 +130,24 @@ def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_
     return r.ravel(), Q, chain
 
 
+def _weighted_columns(e: Effect, ctx: Context, Jq: np.ndarray, sigma: np.ndarray):
+    """The effect's columns of the coupled Jacobian, weighted, (m, k), and its basis."""
+    b = e.basis(ctx)
+    k = len(e.parameter_names(ctx.model))
+    C = np.zeros((ctx.meas.n_poses, 3, k))
+    if b.joint is not None:
+        C += np.einsum("nij,njk->nik", Jq, b.joint)
+    if b.cart is not None:
+        C += b.cart
+    return (C / sigma[:, None, None]).reshape(-1, k), b
+
+
 def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[Effect], x_ref: np.ndarray,
-           alpha: float) -> list[Candidate]:
-    """Score every candidate by the F-test of adding it to the current model (linearised at its solution)."""
+           alpha: float) -> tuple[list[Candidate], float]:
+    """Score every candidate by the F-test of adding it to the current model (linearised at its solution).
+
+    Also returns the share of the residual a smooth joint-space field (ridge) explains: a named cause
+    that explains far less than the field is only picking up part of a broader structure."""
     model = cal.model
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
     ctx = Context(model, K.Chain(model, x_ref, meas.joints, cal.R0), meas)
@@ -139,14 +156,8 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     rss = float(r @ r)
     out = []
     for e in pool:
-        b = e.basis(ctx)
-        k = len(e.parameter_names(model))
-        C = np.zeros((meas.n_poses, 3, k))
-        if b.joint is not None:
-            C += np.einsum("nij,njk->nik", Jq, b.joint)
-        if b.cart is not None:
-            C += b.cart
-        Cw = (C / sigma[:, None, None]).reshape(m, k)
+        Cw, b = _weighted_columns(e, ctx, Jq, sigma)
+        k = Cw.shape[1]
         Cp = Cw - Q @ (Q.T @ Cw)
         sv = np.linalg.svd(Cp, compute_uv=False)
         if sv[0] <= 1e-6 * np.linalg.norm(Cw) or np.any(sv < 1e-6 * sv[0]):
@@ -162,10 +173,16 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
         res_mm = r.reshape(-1, 3) * sigma[:, None]
         out.append(Candidate(
             effect=e, label=e.label(model), p_value=float(np.exp(log_p)), log_p=log_p, F=float(F),
-            explained=drss / rss, bic=m * np.log(max(rss - drss, 1e-300) / m) + k * np.log(m), effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
+            explained=drss / rss, bic=m * np.log(max(rss - drss, 1e-300) / m) + k * np.log(m),
+            effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
             regressor=b.regressor, regressor_label=b.regressor_label,
             projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
-    return sorted(out, key=lambda c: c.bic)
+    field = ResidualField((), length_scale=1.0)
+    Cw, _ = _weighted_columns(field, ctx, Jq, sigma)
+    Cp = Cw - Q @ (Q.T @ Cw)
+    ridge = np.eye(Cp.shape[1]) / field.prior_std**2
+    fit = Cp @ np.linalg.solve(Cp.T @ Cp + ridge, Cp.T @ r)
+    return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss
 
 
 def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibration, floor: float) -> dict:
@@ -202,7 +219,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     findings, rejected = [], []
     for round_ in range(MAX_FINDINGS):
         report(0.1 + 0.7 * round_ / MAX_FINDINGS, f"testing {len(pool)} candidate causes")
-        ranked = screen(current, meas, sigma, pool, x_ref, alpha)
+        ranked, field_share = screen(current, meas, sigma, pool, x_ref, alpha)
         threshold = np.log(alpha / max(len(pool), 1))
         accepted = False
         for c in ranked:
@@ -212,6 +229,11 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 rejected.append({"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
                                  "why": f"significant (p = {c.p_value:.1e}) but {c.effect_rms_mm:.3f} mm RMS is "
                                         f"below the noise floor {floor:.3f} mm"})
+                continue
+            if c.explained < NAMED_SHARE * field_share:
+                rejected.append({"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
+                                 "why": f"explains {100 * c.explained:.0f} % of the residual where a smooth field "
+                                        f"explains {100 * field_share:.0f} %: part of a broader structure"})
                 continue
             trial = identify(model, meas, effects=tuple(chosen + [c.effect]), loss=loss, folds=folds, x_ref=x_ref)
             hb, ha = current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
