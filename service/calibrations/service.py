@@ -5,6 +5,7 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from calib_core.identify import CalibratedRobot
+from calib_core.io import Measurements
 from calib_core.model import LENGTH_TO_MM
 
 from ..problems import ProblemError, not_found
@@ -42,5 +43,6 @@ def predict(s: Session, c: Calibration, joints: list[list[float]], payload) -> t
         raise ProblemError(422, "the joints do not fit the robot model", kind="validation", errors=errors[:1000])
     q = np.asarray(joints, float) * model.joint_scale()
     robot = CalibratedRobot.from_state(model, c.robot_state)
-    p_mm = robot.predict(q)
+    load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (len(q),)).copy()
+    p_mm = robot.predict(q, Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load))
     return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit
