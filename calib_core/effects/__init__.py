@@ -24,8 +24,8 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
     n = model.n_joints
     moving = [j for j in range(n) if np.ptp(meas.joints[:, j]) > 1e-3]  # rad or mm: a joint that moves
     if model.has_mass:
-        out += [JointCompliance((j,)) for j in moving]
-        out += [Backlash((j,)) for j in moving]
+        out += [JointCompliance((j,)) for j in range(n)]  # its load varies even where the joint stands still
+        out += [Backlash((j,)) for j in range(n)]
         out += [LinkDeflection((k,)) for k in range(1, n)]
     else:
         notes.append("the model has no masses: joint_compliance, backlash and link_deflection cannot be tested")
