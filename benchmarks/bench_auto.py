@@ -23,7 +23,7 @@ def main(sizes=(150, 2000)):
     print("| poses | hidden effect | auto run (s) | findings | held-out RMS geometric -> extended (mm) |")
     print("|---|---|---|---|---|")
     for n in sizes:
-        for kind in (None, "joint_compliance", "cyclic_joint_error"):
+        for kind in (None, "joint_compliance", "cyclic_joint_error", "unexplained"):
             twin = Twin(model, 7)
             q = twin.sample_joints(n)
             label = "none"
