@@ -9,6 +9,10 @@ from pathlib import Path
 
 from .config import Settings
 
+HIDDEN_KINDS = ("joint_compliance", "link_deflection", "cyclic_joint_error", "backlash", "joint_scale",
+                "axis_straightness", "thermal_drift", "unexplained")
+"""calib_core.twin.HIDDEN_KINDS, spelled out so that `calib --help` does not import numpy and scipy."""
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -72,8 +76,29 @@ def cmd_db(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    print("calib demo: not yet implemented", file=sys.stderr)
-    return 2
+    from .demo import run
+
+    return run(args)
+
+
+def cmd_convert_dataset(args) -> int:
+    import json
+
+    from calib_core import datasets
+
+    readers = {"motoman_leica": datasets.motoman_leica, "iiwa7_payload": lambda: datasets.iiwa7_payload(None)}
+    try:
+        ds = readers[args.name]()
+    except FileNotFoundError as exc:
+        print(f"calib convert-dataset: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "model.json").write_text(json.dumps(ds.model, indent=2) + "\n")
+    (out / "measurements.csv").write_text(ds.csv_text)
+    print(f"{out / 'model.json'}\n{out / 'measurements.csv'}\n{ds.notes}")
+    print(f"try: calib demo --robot {out / 'model.json'} --data {out / 'measurements.csv'}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,8 +117,26 @@ def main(argv: list[str] | None = None) -> int:
     up = dsub.add_parser("upgrade", help="apply migrations")
     up.add_argument("revision", nargs="?", default="head")
     up.set_defaults(fn=cmd_db)
-    demo = sub.add_parser("demo", help="the whole story on bundled example data (not yet implemented)")
+    demo = sub.add_parser("demo", help="the whole story end to end: simulated robot (or your data), service, "
+                          "calibration, diagnosis, validation, compensation, report",
+                          description="Starts `calib serve` on the configured database (default sqlite:///./calib.db), "
+                          "uploads a measurement campaign over REST, runs the auto calibration and tells the story.")
+    demo.add_argument("--effect", choices=[*HIDDEN_KINDS, "none"],
+                      help="the effect the simulated robot hides (default: drawn at random)")
+    demo.add_argument("--seed", type=int, help="seed of the simulated robot (default: random, printed), "
+                      "or of the validation split with --data (default 0)")
+    demo.add_argument("--robot", metavar="MODEL.json", help="a contract model file (with --data: real measurements)")
+    demo.add_argument("--data", metavar="MEASUREMENTS.csv", help="a contract measurement CSV of that robot; "
+                      "30 %% of the poses are held out for validation")
+    demo.add_argument("--report", default="calib-demo-report.html", metavar="PATH",
+                      help="where to save the report (default ./calib-demo-report.html)")
+    demo.add_argument("--keep-serving", action="store_true", help="leave the service running at the end (Ctrl-C stops it)")
     demo.set_defaults(fn=cmd_demo)
+    cv = sub.add_parser("convert-dataset", help="write a real dataset of ../shared/datasets as contract model.json "
+                        "and measurements.csv")
+    cv.add_argument("name", choices=["motoman_leica", "iiwa7_payload"])
+    cv.add_argument("outdir")
+    cv.set_defaults(fn=cmd_convert_dataset)
     args = p.parse_args(argv)
     _logging(args.log_level)
     return args.fn(args)

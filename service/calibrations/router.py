@@ -1,6 +1,7 @@
 from __future__ import annotations
 
-from fastapi import APIRouter, Body, Depends
+from fastapi import APIRouter, Body, Depends, Path, Query
+from fastapi.responses import HTMLResponse, Response
 from sqlalchemy.orm import Session
 
 from ..deps import get_read_session, require_writer
@@ -17,6 +18,32 @@ def get_calibration(calibration_id: str, s: Session = Depends(get_read_session, 
     return service.answer(service.get_calibration(s, calibration_id))
 
 
+@router.get("/calibrations/{calibration_id}/report", response_class=HTMLResponse,
+            responses={200: {"description": "the report page", "content": {"text/html": {"example": "<!DOCTYPE html>..."}}},
+                       **problem_responses(404, 422)},
+            summary="The calibration report: a page for people (parameters, error tables, diagnosis, plots)")
+def get_report(calibration_id: str, inline: bool = Query(False, description="embed the plots in the page (a file "
+                                                                            "that can be saved and mailed on its own)"),
+               s: Session = Depends(get_read_session, scope="function")) -> HTMLResponse:
+    """Everything on the page comes from the stored answer (`GET /calibrations/{id}`): the parameter table
+    (value, std, unit), the error tables (mean, RMS, max; ISO 9283 AP), the diagnosis with its plots.
+    Readable on a laptop, printable (A4)."""
+    return HTMLResponse(service.report(service.get_calibration(s, calibration_id), inline=inline))
+
+
+@router.get("/calibrations/{calibration_id}/plots/{name}.png", response_class=Response,
+            responses={200: {"description": "the plot", "content": {"image/png": {
+                "schema": {"type": "string", "format": "binary"}}}}, **problem_responses(404)},
+            summary="A diagnosis plot as PNG (names listed in the calibration's `plots`)")
+def get_plot(calibration_id: str, name: str = Path(..., description="`errors`, `distribution`, `finding-1`, ...",
+                                                  examples=["errors"]),
+             s: Session = Depends(get_read_session, scope="function")) -> Response:
+    """`errors`: held-out error per pose, geometric and final model; `distribution`: their histograms;
+    `finding-k`: the k-th finding's residual against its regressor, with the fitted effect."""
+    png = service.plot_png(service.get_calibration(s, calibration_id), name)
+    return Response(png, media_type="image/png", headers={"Cache-Control": "public, max-age=86400"})
+
+
 @router.post("/calibrations/{calibration_id}/predict", response_model=PredictOut,
              dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422),
              summary="Where the calibrated robot puts the measured point")
@@ -26,7 +53,7 @@ def predict(calibration_id: str, body: PredictIn = Body(..., openapi_examples={"
         s: Session = Depends(get_read_session, scope="function")) -> PredictOut:
     """Joints in the model's units and joint order; positions in the measurement (tracker) frame, model length unit."""
     c = service.get_calibration(s, calibration_id)
-    positions, unit = service.predict(s, c, body.joints, body.payload)
+    positions, unit = service.predict(s, c, body.joints, body.payload, body.temperature, body.timestamp)
     return PredictOut(positions=positions, unit=unit)
 
 

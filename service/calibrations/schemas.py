@@ -8,9 +8,17 @@ Finite = Annotated[float, Field(allow_inf_nan=False)]
 MAX_POSES = 100_000
 
 
+class PlotRef(BaseModel):
+    name: str = Field(description="`errors`, `distribution` or `finding-k` (the k-th finding, 1-based)")
+    title: str
+    url: str = Field(description="GET it for the PNG")
+
+
 class CalibrationOut(BaseModel):
     """The contract answer: parameters, metrics, diagnosis, plus what calib_core adds (identifiability,
-    base pose, calibrated model, units)."""
+    base pose, calibrated model, units) and what the service derives from it: `accuracy` (the error table of
+    the report: mean, RMS, max per model, fit and held-out), `plots` (with `plot_url` on each finding that
+    has one) and `report_url` (the HTML report)."""
 
     model_config = ConfigDict(extra="allow", json_schema_extra={"example": {
         "id": "e2b9c4d1-7a63-4c1f-9e0a-4b5d6c7e8f90", "job_id": "c1e7a0d2-6b55-4f0e-a1c3-3a9d7b2e8f10",
@@ -18,7 +26,12 @@ class CalibrationOut(BaseModel):
         "model": ["geometric"],
         "parameters": [{"name": "J4.theta", "value": 0.0123, "nominal": 0.0, "std": 0.0004, "unit": "deg"}],
         "metrics": {"n_poses": 150, "rms_mm": 0.05, "max_mm": 0.14, "holdout_rms_mm": 0.06},
-        "created_at": "2026-11-03T08:00:20+00:00"}})
+        "created_at": "2026-11-03T08:00:20+00:00",
+        "accuracy": {"unit": "mm", "models": [{"model": "geometric", "final": True,
+                                               "fit": {"mean_mm": 0.045, "rms_mm": 0.05, "max_mm": 0.14},
+                                               "holdout": {"n": 150, "mean_mm": None, "rms_mm": 0.06, "max_mm": 0.16}}],
+                     "note": "held-out: ..."},
+        "plots": [], "report_url": "/calibrations/e2b9c4d1-7a63-4c1f-9e0a-4b5d6c7e8f90/report"}})
     id: str
     job_id: str
     robot_id: str
@@ -27,6 +40,10 @@ class CalibrationOut(BaseModel):
     parameters: list[dict[str, Any]]
     metrics: dict[str, Any]
     created_at: str
+    accuracy: dict[str, Any] = Field(description="error table (mm): per model, fit and held-out mean / RMS / max; "
+                                     "held-out mean and max are ISO 9283 AP mean and max (one measurement per pose)")
+    plots: list[PlotRef] = Field(description="the diagnosis plots (PNG); empty for a geometric-only calibration")
+    report_url: str = Field(description="the HTML report of this calibration")
 
 
 class PredictIn(BaseModel):
@@ -36,6 +53,11 @@ class PredictIn(BaseModel):
                                        description="N poses x n joints, model units, model joint order")
     payload: Finite | list[Finite] | None = Field(None, description="kg at the tool, one value or one per pose; "
                                                   "used only by calibrations that identified load effects")
+    temperature: Finite | list[Finite] | None = Field(None, description="deg C, one value or one per pose; used "
+                                                      "only by a calibration that identified thermal drift "
+                                                      "(absent: the calibration's mean temperature)")
+    timestamp: str | list[str] | None = Field(None, description="ISO 8601, one or one per pose; used only by a "
+                                              "calibration that identified a drift over time", max_length=MAX_POSES)
 
 
 class PredictOut(BaseModel):

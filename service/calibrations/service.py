@@ -1,6 +1,8 @@
 """Calibrations: read the stored answer, predict with calib_core's CalibratedRobot."""
 from __future__ import annotations
 
+from datetime import datetime, timezone
+
 import numpy as np
 from sqlalchemy.orm import Session
 
@@ -9,6 +11,7 @@ from calib_core.io import Measurements
 from calib_core.model import LENGTH_TO_MM
 
 from ..problems import ProblemError, not_found
+from ..report import decorate
 from ..robots.models import Robot
 from ..robots.schemas import iso
 from ..robots.service import model_of
@@ -29,20 +32,69 @@ def answer(c: Calibration) -> dict:
     out.setdefault("parameters", [])
     out.setdefault("metrics", {})
     out["created_at"] = iso(c.created_at)
-    return out
+    return decorate(out, f"/calibrations/{c.id}")
 
 
-def predict(s: Session, c: Calibration, joints: list[list[float]], payload) -> tuple[list[list[float]], str]:
+def report(c: Calibration, inline: bool = False) -> str:
+    """The HTML report of the stored answer (the same dict `GET /calibrations/{id}` returns)."""
+    from ..report import html as report_html
+
+    a = answer(c)
+    return report_html.render(a, (lambda name: plot_png(c, name, a)) if inline else None)
+
+
+def plot_png(c: Calibration, name: str, a: dict | None = None) -> bytes:
+    from ..report import plots as report_plots
+
+    a = a if a is not None else answer(c)
+    try:
+        return report_plots.png(a, name, cache_key=c.id)
+    except report_plots.UnknownPlot:
+        have = ", ".join(p["name"] for p in a["plots"]) or "none (plots come with the auto model's diagnosis)"
+        raise ProblemError(404, f"calibration {c.id!r} has no plot {name!r}; it has: {have}",
+                           kind="not-found") from None
+
+
+def _per_pose(name: str, v, n: int, errors: list) -> np.ndarray | None:
+    if v is None:
+        return None
+    if isinstance(v, list) and len(v) != n:
+        errors.append({"field": f"body.{name}", "value": len(v), "message": "one value per pose, or one value"})
+        return None
+    return np.broadcast_to(np.asarray(v, float), (n,)).copy()
+
+
+def _epoch(stamps, errors: list):
+    if stamps is None:
+        return None
+    out = []
+    for i, t in enumerate(stamps if isinstance(stamps, list) else [stamps]):
+        try:
+            d = datetime.fromisoformat(t.replace("Z", "+00:00"))
+        except ValueError:
+            errors.append({"field": f"body.timestamp[{i}]", "value": t,
+                           "message": "not an ISO 8601 timestamp (e.g. 2026-11-03T08:00:19+00:00)"})
+            out.append(float("nan"))
+            continue
+        out.append((d if d.tzinfo else d.replace(tzinfo=timezone.utc)).timestamp())
+    return out if isinstance(stamps, list) else (out[0] if out else None)
+
+
+def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temperature=None,
+            timestamp=None) -> tuple[list[list[float]], str]:
     model = model_of(s.get(Robot, c.robot_id))
     n = model.n_joints
     errors = [{"field": f"body.joints[{i}]", "value": len(row), "message": f"expected {n} joint values "
                f"({', '.join(model.joint_names)})"} for i, row in enumerate(joints) if len(row) != n]
     if isinstance(payload, list) and len(payload) != len(joints):
         errors.append({"field": "body.payload", "value": len(payload), "message": "one payload per pose, or one number"})
+    temp = _per_pose("temperature", temperature, len(joints), errors)
+    stamps = _per_pose("timestamp", _epoch(timestamp, errors), len(joints), errors)
     if errors:
         raise ProblemError(422, "the joints do not fit the robot model", kind="validation", errors=errors[:1000])
     q = np.asarray(joints, float) * model.joint_scale()
     robot = CalibratedRobot.from_state(model, c.robot_state)
     load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (len(q),)).copy()
-    p_mm = robot.predict(q, Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load))
+    p_mm = robot.predict(q, Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load, temperature=temp,
+                                         timestamp=stamps))
     return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit

@@ -1,4 +1,4 @@
-"""The console script: `calib db upgrade` migrates a fresh database; `calib demo` is a stub (exit 2)."""
+"""The console script: `calib db upgrade` migrates a fresh database (`calib demo`: see test_demo.py)."""
 from __future__ import annotations
 
 import sqlite3
@@ -22,8 +22,3 @@ def test_db_upgrade_creates_the_schema(tmp_path):
         assert c.execute("PRAGMA journal_mode").fetchone()[0] in ("wal", "delete")
     assert {"robots", "measurement_sets", "jobs", "calibrations", "alembic_version"} <= tables
     assert calib("db", "upgrade", env=base_env(f"sqlite:///{db}")).returncode == 0  # idempotent
-
-
-def test_demo_is_a_stub():
-    r = calib("demo")
-    assert r.returncode == 2 and "not yet implemented" in r.stderr

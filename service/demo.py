@@ -1,0 +1,514 @@
+"""`calib demo`: the whole story, end to end, over HTTP against a `calib serve` the demo starts itself.
+
+Without data: the 7-DoF spray-painting robot of Wang et al. 2023 as a digital twin (geometric errors of the
+paper's size, a laser tracker, one hidden effect drawn at random unless `--effect` names it), 150 calibration
+poses and 100 validation poses. With `--robot MODEL.json --data MEASUREMENTS.csv`: real measurements, 30 % of
+the poses held out client-side for validation.
+
+The story is printed on stdout; the progress bar and the server's failures go to stderr.
+"""
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from calib_core.identify import evaluate, identify
+from calib_core.io import MeasurementError, Measurements, parse_measurements, write_measurements
+from calib_core.model import LENGTH_TO_MM, ModelError, RobotModel, parse_model
+
+from .config import Settings
+
+N_CAL, N_VAL = 150, 100
+HOLDOUT_FRACTION = 0.3
+SIZE_RANGE = (4.0, 10.0)
+"""A drawn hidden effect's part no geometric parameter can absorb is this many times the noise RMS."""
+WIDTH = 100
+
+
+class DemoError(Exception):
+    pass
+
+
+# ----------------------------------------------------------------------------------------------- output
+
+def say(text: str = "", indent: int = 0) -> None:
+    pad = " " * indent
+    print(textwrap.fill(text, WIDTH, initial_indent=pad, subsequent_indent=pad + "  ", break_on_hyphens=False,
+                        break_long_words=False) if text else "", flush=True)
+
+
+def head(text: str) -> None:
+    print(f"\n{text}", flush=True)
+
+
+def fmm(v: float) -> str:
+    return f"{v:.3f} mm"
+
+
+def table(rows: list[tuple[str, dict]]) -> None:
+    """Aligned `label   0.123 mm RMS, max 0.456 mm` lines."""
+    w = max(len(label) for label, _ in rows) + 2
+    for label, e in rows:
+        print(f"   {label + ':':<{w}} {e['rms_mm']:8.3f} mm RMS, max {e['max_mm']:8.3f} mm", flush=True)
+
+
+class ProgressBar:
+    """A text bar on stderr: redrawn in place on a terminal, one line per new message otherwise."""
+
+    def __init__(self, stream=sys.stderr, width: int = 30):
+        self.stream, self.width = stream, width
+        self.tty = hasattr(stream, "isatty") and stream.isatty()
+        self.last = None
+
+    def update(self, fraction: float, message: str | None) -> None:
+        fraction = min(max(float(fraction or 0.0), 0.0), 1.0)
+        n = int(round(fraction * self.width))
+        line = f"  [{'#' * n}{'.' * (self.width - n)}] {100 * fraction:3.0f} %  {message or ''}"
+        if self.tty:
+            self.stream.write("\r" + line[:WIDTH].ljust(WIDTH))
+            self.stream.flush()
+        elif message != self.last:
+            self.stream.write(line + "\n")
+            self.stream.flush()
+        self.last = message
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+# ----------------------------------------------------------------------------------------------- server
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class Server:
+    """`calib serve` in a subprocess (its own process group) on a free loopback port."""
+
+    proc: subprocess.Popen
+    url: str
+    log: Path
+
+    @classmethod
+    def start(cls, database_url: str, log: Path, timeout: float = 60.0) -> "Server":
+        port = free_port()
+        env = {k: v for k, v in os.environ.items() if k not in ("CALIB_TEST_JOB_DELAY_S",)}
+        env.update({"CALIB_DATABASE_URL": database_url, "CALIB_EMBEDDED_WORKERS": "1", "CALIB_POLL_SECONDS": "0.1",
+                    "CALIB_HEARTBEAT_SECONDS": "0.5",  # the worker writes progress with its heartbeat
+                    "PYTHONUNBUFFERED": "1"})
+        fh = open(log, "ab")
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "--log-level", "WARNING", "serve",
+                                 "--host", "127.0.0.1", "--port", str(port)], env=env, stdout=fh,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+        fh.close()
+        server = cls(proc, f"http://127.0.0.1:{port}", log)
+        deadline = time.monotonic() + timeout
+        while True:
+            if proc.poll() is not None:
+                raise DemoError(f"calib serve exited (status {proc.returncode}):\n{server.tail()}")
+            try:
+                if httpx.get(server.url + "/health", timeout=2).status_code == 200:
+                    return server
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                server.stop()
+                raise DemoError(f"calib serve did not answer within {timeout:.0f} s:\n{server.tail()}")
+            time.sleep(0.1)
+
+    def tail(self, n: int = 30) -> str:
+        try:
+            return "\n".join(self.log.read_text(errors="replace").splitlines()[-n:])
+        except OSError:
+            return ""
+
+    def stop(self) -> None:
+        if self.proc.poll() is not None:
+            return
+        try:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            self.proc.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(5)
+        except ProcessLookupError:
+            pass
+
+
+class Api:
+    """The few REST calls of the story, with problem documents turned into DemoError."""
+
+    def __init__(self, url: str, token: str | None):
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.c = httpx.Client(base_url=url, timeout=120, headers=headers)
+
+    def close(self) -> None:
+        self.c.close()
+
+    def call(self, method: str, path: str, expect: tuple[int, ...] = (200,), **kw) -> httpx.Response:
+        r = self.c.request(method, path, **kw)
+        if r.status_code not in expect:
+            try:
+                body = r.json()
+                detail = body.get("detail") or body
+                errors = body.get("errors") or []
+            except ValueError:
+                detail, errors = r.text[:500], []
+            more = "".join(f"\n    {e}" for e in errors[:10])
+            raise DemoError(f"{method} {path} answered {r.status_code}: {detail}{more}")
+        return r
+
+    def submit(self, ms_id: str, mode: str) -> str:
+        return self.call("POST", "/jobs", (202,), json={"measurement_set_id": ms_id, "model": mode}).headers["location"]
+
+    def wait(self, loc: str, bar: ProgressBar | None = None, timeout: float = 600.0) -> dict:
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                j = self.call("GET", loc).json()
+                if bar is not None:
+                    bar.update(j["progress"], j.get("message") or j["status"])
+                if j["status"] == "succeeded":
+                    return j
+                if j["status"] == "failed":
+                    raise DemoError(f"the {j['model']} job failed: {j.get('error')}")
+                if time.monotonic() > deadline:
+                    raise DemoError(f"the {j['model']} job did not finish within {timeout:.0f} s")
+                time.sleep(0.2)
+        finally:
+            if bar is not None:
+                bar.close()
+
+    def predict_mm(self, cal_id: str, model: RobotModel, meas: Measurements) -> np.ndarray:
+        """Positions (N, 3) in mm predicted by the service for the poses of `meas` (internal units)."""
+        body: dict = {"joints": (meas.joints / model.joint_scale()).tolist()}
+        if meas.payload is not None:
+            body["payload"] = meas.payload.tolist()
+        if meas.temperature is not None:
+            body["temperature"] = meas.temperature.tolist()
+        if meas.timestamp is not None:
+            body["timestamp"] = [datetime.fromtimestamp(t, timezone.utc).isoformat() for t in meas.timestamp]
+        r = self.call("POST", f"/calibrations/{cal_id}/predict", json=body).json()
+        return np.asarray(r["positions"], float) * LENGTH_TO_MM[model.length_unit]
+
+
+def errors_mm(points_mm: np.ndarray, predicted_mm: np.ndarray) -> dict:
+    d = np.linalg.norm(points_mm - predicted_mm, axis=1)
+    return {"n": int(len(d)), "rms_mm": float(np.sqrt(np.mean(d**2))), "mean_mm": float(d.mean()),
+            "max_mm": float(d.max())}
+
+
+# ----------------------------------------------------------------------------------------------- data
+
+@dataclass
+class Campaign:
+    model_doc: dict
+    model: RobotModel
+    csv_text: str  # what is uploaded
+    cal: Measurements  # the uploaded poses, parsed
+    val: Measurements  # validation poses, never uploaded
+    source: str  # one line: where the data comes from
+    validation: str  # one line: what the validation poses are
+    twin: object | None = None
+    hidden: tuple | None = None  # (kind, effect, n_noise) of the twin's hidden effect
+    n_total: int = 0
+
+
+def simulated(effect: str | None, seed: int) -> Campaign:
+    from calib_core.robots import spray7
+    from calib_core.twin import HIDDEN_KINDS, Twin, draw_hidden_effect
+
+    doc = spray7()
+    model = parse_model(doc)
+    rng = np.random.default_rng(seed)
+    kind = effect or str(rng.choice(HIDDEN_KINDS))
+    twin = Twin(model, seed)
+    q = twin.sample_joints(N_CAL)
+    hidden = None
+    if kind != "none":
+        n_noise = float(np.exp(rng.uniform(*np.log(SIZE_RANGE))))
+        eff, _ = draw_hidden_effect(twin, kind, n_noise, q, rng)
+        hidden = (kind, eff, n_noise)
+    thermal = kind == "thermal_drift"
+    cal = twin.measure(q, temperature=thermal)
+    val = twin.measure(twin.sample_joints(N_VAL), temperature=thermal)
+    return Campaign(doc, model, write_measurements(cal, model), cal, val,
+                    source=f"simulated: a digital twin of the robot (geometric errors of the paper's size, tool point "
+                           f"off by millimetres, laser tracker noise 15 um + 6 um/m, repeatability 20 um), seed {seed}",
+                    validation=f"{N_VAL} more poses measured on the same twin, never uploaded",
+                    twin=twin, hidden=hidden, n_total=N_CAL + N_VAL)
+
+
+def from_files(robot: Path, data: Path, seed: int) -> Campaign:
+    try:
+        doc = json.loads(robot.read_text())
+    except (OSError, ValueError) as exc:
+        raise DemoError(f"cannot read the model {robot}: {exc}") from None
+    try:
+        model = parse_model(doc)
+    except ModelError as exc:
+        raise DemoError(f"the model {robot} is not valid: {exc}") from None
+    try:
+        text = data.read_text(encoding="utf-8-sig")
+        meas = parse_measurements(text, model)
+    except OSError as exc:
+        raise DemoError(f"cannot read the measurements {data}: {exc}") from None
+    except MeasurementError as exc:
+        listed = "".join(f"\n    row {e['row']}, column {e['column']}: {e['message']}" for e in exc.errors[:10])
+        raise DemoError(f"{data} does not fit the contract CSV ({exc.total} errors):{listed}") from None
+    lines = text.splitlines()
+    body = [k for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith(("#", "//"))]
+    header, rows = body[0], body[1:]
+    if len(rows) != meas.n_poses:
+        raise DemoError(f"{data}: {len(rows)} data lines but {meas.n_poses} poses parsed")
+    n_val = int(round(HOLDOUT_FRACTION * meas.n_poses))
+    if meas.n_poses - n_val < 30 or n_val < 5:
+        raise DemoError(f"{data} has {meas.n_poses} poses: too few to hold out {100 * HOLDOUT_FRACTION:.0f} %")
+    perm = np.random.default_rng(seed).permutation(meas.n_poses)
+    val_idx, cal_idx = np.sort(perm[:n_val]), np.sort(perm[n_val:])
+    upload = "\n".join([lines[header]] + [lines[rows[i]] for i in cal_idx]) + "\n"
+    return Campaign(doc, model, upload, meas.subset(cal_idx), meas.subset(val_idx),
+                    source=f"{data} ({meas.n_poses} measured poses) and the model {robot}",
+                    validation=f"{n_val} poses ({100 * HOLDOUT_FRACTION:.0f} %) held out at random (seed {seed}) "
+                               f"before the upload, never seen by the service",
+                    n_total=meas.n_poses)
+
+
+# ----------------------------------------------------------------------------------------------- story
+
+def run(args) -> int:
+    import logging
+
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # the story is the output, not the requests
+    settings = Settings.from_env()
+    t_start = time.monotonic()
+    seed = args.seed if args.seed is not None else (0 if args.data else secrets.randbelow(1_000_000))
+    if bool(args.robot) != bool(args.data):
+        print("calib demo: --robot and --data go together (a model JSON and its measurement CSV)", file=sys.stderr)
+        return 2
+    try:
+        if args.data:
+            camp = from_files(Path(args.robot), Path(args.data), seed)
+        else:
+            camp = simulated(args.effect, seed)
+    except DemoError as exc:
+        print(f"calib demo: {exc}", file=sys.stderr)
+        return 2
+    log = Path(tempfile.mkdtemp(prefix="calib-demo-")) / "server.log"
+    try:
+        return _story(args, settings, camp, seed, log, t_start)
+    except DemoError as exc:
+        print(f"\ncalib demo failed: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("\ncalib demo: interrupted", file=sys.stderr)
+        return 130
+
+
+def _story(args, settings: Settings, camp: Campaign, seed: int, log: Path, t_start: float) -> int:
+    model = camp.model
+    if camp.twin is not None:
+        say("calib demo: the 7-DoF spray-painting robot of Wang et al. (Machines 2023, 11, 20): a 4 m rail, waist, "
+            "two parallel pitch joints, forearm roll, a telescopic forearm (1700-2300 mm) and a wrist.")
+    else:
+        say(f"calib demo on real measurements: robot {model.name} ({model.n_joints} joints, "
+            f"{str(camp.model_doc.get('convention', 'mdh')).upper()}, {model.length_unit}/{model.angle_unit}).")
+
+    head("1. The service")
+    db = settings.database_url
+    server = Server.start(db, log)
+    api = Api(server.url, settings.api_token)
+    try:
+        say(f"calib serve is running on {server.url} (database {_show_db(db)}; its log: {log}).", 3)
+        return _chapters(args, api, server, camp, seed, t_start)
+    finally:
+        api.close()
+        if args.keep_serving:
+            say("")
+            say(f"The service keeps running on {server.url} (report, /docs); Ctrl-C stops it.")
+            try:
+                server.proc.wait()
+            except KeyboardInterrupt:
+                pass
+        server.stop()
+
+
+def _show_db(url: str) -> str:
+    if url.startswith("sqlite:///"):
+        path = url[len("sqlite:///"):]
+        return f"SQLite file {Path(path).resolve()}" if path and path != ":memory:" else url
+    try:
+        from sqlalchemy.engine import make_url
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:  # noqa: BLE001 - only for display
+        return url.split("@")[-1]
+
+
+def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start: float) -> int:
+    model = camp.model
+    head("2. The measurement campaign")
+    say(f"Data: {camp.source}.", 3)
+    if camp.twin is not None:
+        hidden = "one effect the model does not know, drawn at random" if not args.effect else (
+            "no effect beyond the geometry" if args.effect == "none" else f"one effect the model does not know "
+                                                                           f"(--effect {args.effect})")
+        say(f"The twin hides {hidden}: it is revealed at the end (calib demo --seed {seed} repeats this run).", 3)
+    say(f"Calibration poses: {camp.cal.n_poses}, uploaded. Validation: {camp.validation}.", 3)
+    robot = api.call("POST", "/robots", (201,), json=camp.model_doc).json()
+    ms = api.call("POST", f"/robots/{robot['id']}/measurements", (201,),
+                  files={"file": ("campaign.csv", camp.csv_text.encode(), "text/csv")}).json()
+    say(f"POST /robots -> robot {robot['id']}; POST /robots/{{id}}/measurements -> {ms['n_poses']} poses stored "
+        f"(set {ms['id']}).", 3)
+
+    head("3. The calibration: POST /jobs {\"model\": \"auto\"}")
+    say("The service identifies the geometric model, then looks at what it still gets wrong, names the cause, "
+        "adds it to the model and checks the gain on poses it did not fit (a geometric-only job runs alongside, "
+        "for comparison).", 3)
+    geo_loc = api.submit(ms["id"], "geometric")
+    t0 = time.monotonic()
+    auto_loc = api.submit(ms["id"], "auto")
+    job = api.wait(auto_loc, ProgressBar())
+    dt = time.monotonic() - t0
+    geo_job = api.wait(geo_loc)
+    cal_id = job["calibration_id"]
+    cal = api.call("GET", f"/calibrations/{cal_id}").json()
+    geo_cal = api.call("GET", f"/calibrations/{geo_job['calibration_id']}").json()
+    say(f"Job {job['id']} succeeded in {dt:.1f} s: calibration {cal_id}, model {' + '.join(cal['model'])}, "
+        f"{len(cal['parameters'])} parameters.", 3)
+
+    head(f"4. What the service found (errors on the {camp.val.n_poses} validation poses)")
+    before = evaluate(identify(model, camp.cal, free=("base", "tool"), folds=1), camp.val)
+    geo_val = errors_mm(camp.val.points, api.predict_mm(geo_cal["id"], model, camp.val))
+    ext_val = errors_mm(camp.val.points, api.predict_mm(cal_id, model, camp.val))
+    d = cal.get("diagnosis") or {}
+    g = d.get("geometric") or {}
+    floor = d.get("noise_floor_mm")
+    rows = [("before calibration (nominal model, placed in the tracker frame)", before),
+            (f"after the geometric model ({len(geo_cal['parameters'])} parameters)", geo_val)]
+    findings = d.get("findings") or []
+    if findings:
+        rows.append((f"after the extended model ({' + '.join(cal['model'])})", ext_val))
+    table(rows)
+    print(flush=True)
+    if floor is not None and g.get("holdout_rms_mm") is not None:
+        ratio = g["holdout_rms_mm"] / floor
+        verdict = ("the residual has structure a better model can remove" if ratio >= 1.25 else
+                   "that is the noise floor: nothing is left to explain")
+        say(f"What the geometric model still gets wrong: on the calibration poses (cross-validated) it leaves "
+            f"{fmm(g['holdout_rms_mm'])} RMS, {ratio:.1f}x the noise floor of {fmm(floor)} (tracker and "
+            f"repeatability): {verdict}.", 3)
+    for k, f in enumerate(findings, 1):
+        who = f" on {', '.join(f['joints'])}" if f.get("joints") else ""
+        harm = f" (harmonic {f['harmonic']})" if f.get("harmonic") is not None else ""
+        name = ("structure no named cause explains, corrected by a smooth joint-space field"
+                if f["kind"] == "unexplained" else f"{f['kind'].replace('_', ' ')}{who}{harm}")
+        say(f"Cause {k} [{f['kind']}]: {name}. Held-out {fmm(f['holdout_rms_before_mm'])} -> "
+            f"{fmm(f['holdout_rms_after_mm'])}, {f['gain_pct']:.1f} % better.", 3)
+        say(f"Evidence: {f['evidence']}", 5)
+    if not findings:
+        say("Named cause: none. " + (d.get("explanation", "").split(". ", 1)[-1] if d else ""), 3)
+    gain = 100.0 * (geo_val["rms_mm"] - ext_val["rms_mm"]) / geo_val["rms_mm"]
+    if findings:
+        say(f"Gain of the extended model on the validation poses: {gain:.1f} % ({fmm(geo_val['rms_mm'])} -> "
+            f"{fmm(ext_val['rms_mm'])} RMS; max {fmm(geo_val['max_mm'])} -> {fmm(ext_val['max_mm'])}).", 3)
+    else:
+        say(f"The final model is the geometric one: {fmm(ext_val['rms_mm'])} RMS on the validation poses.", 3)
+
+    head("5. Compensation: POST /calibrations/{id}/compensate")
+    _compensation(api, camp, cal_id, before)
+
+    if camp.hidden is not None or (camp.twin is not None and args.effect == "none"):
+        head("6. The twin's secret")
+        _reveal(camp, findings)
+
+    head("The report")
+    report = Path(args.report).resolve()
+    html = api.call("GET", f"/calibrations/{cal_id}/report", params={"inline": "true"}).text
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(html, encoding="utf-8")
+    say(f"Saved to {report} (one file, plots included: open it in a browser, print it, mail it).", 3)
+    say(f"Served at {server.url}/calibrations/{cal_id}/report while the service runs; "
+        f"the same figures as JSON: GET /calibrations/{cal_id}.", 3)
+    head("Explore the API")
+    say("Start the service with `calib serve` (same database: this calibration is there) and open "
+        "http://127.0.0.1:8000/docs to try every call; `calib demo --keep-serving` keeps this run's service up "
+        f"instead. Total demo time {time.monotonic() - t_start:.0f} s.", 3)
+    return 0
+
+
+def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
+    model = camp.model
+    js, ls = model.joint_scale(), LENGTH_TO_MM[model.length_unit]
+    if camp.twin is not None:
+        # targets: where the program (nominal model in the tracker frame) believes the validation poses put the tool
+        nominal = identify(model, camp.cal, free=("base", "tool"), folds=1)
+        seeds = camp.val.joints
+        targets_mm = nominal.predict(seeds)
+    else:
+        seeds, targets_mm = camp.val.joints, camp.val.points
+    body = {"targets": (targets_mm / ls).tolist(), "seed_joints": (seeds / js).tolist()}
+    r = api.c.post(f"/calibrations/{cal_id}/compensate", json=body)
+    if r.status_code == 501:
+        say("compensation: not available yet (this version of the service answers 501 Not Implemented).", 3)
+        return
+    if r.status_code != 200:
+        say(f"compensation: the service answered {r.status_code}: {r.text[:300]}", 3)
+        return
+    out = r.json()
+    joints = np.asarray(out["joints"], float) * js
+    resid = np.asarray([np.nan if v is None else v for v in out.get("residual_mm", [])], float)
+    n_ok = int(np.sum(resid < 0.01)) if len(resid) else 0
+    if camp.twin is None:
+        say(f"{len(joints)} targets (the held-out measured points, their measured joints as seeds): the calibrated "
+            f"model reaches {n_ok} of them within 0.01 mm (largest model residual {np.nanmax(resid):.4f} mm). "
+            "Their real accuracy needs a re-measurement of the robot at the compensated joints.", 3)
+        return
+    twin = camp.twin
+    as_programmed = twin.measure(seeds).points  # the robot at the program's joints
+    compensated = twin.measure(joints).points  # the robot at the service's joints
+    e0, e1 = errors_mm(as_programmed, targets_mm), errors_mm(compensated, targets_mm)
+    thermal = camp.hidden is not None and camp.hidden[0] == "thermal_drift"
+    say(f"{len(joints)} targets: where the robot program, using the nominal model, believes the validation poses "
+        f"put the tool. Measured on the twin{' at the calibration mean temperature' if thermal else ''}:", 3)
+    table([("at the program's joints (uncompensated)", e0), ("at the compensated joints from the service", e1)])
+    say(f"The calibrated model reaches {n_ok} of {len(joints)} targets within 0.01 mm (largest model residual "
+        f"{np.nanmax(resid):.4f} mm); what is left is the robot's repeatability and the tracker noise.", 3)
+
+
+def _reveal(camp: Campaign, findings: list[dict]) -> None:
+    model = camp.model
+    named = [(f["kind"], tuple(f.get("joints") or ())) for f in findings]
+    if camp.hidden is None:
+        verdict = "no finding: correct" if not named else f"found {named}: a false alarm"
+        say(f"The twin hid nothing beyond the geometry -> {verdict}.", 3)
+        return
+    kind, eff, n_noise = camp.hidden
+    joints = tuple(model.joint_names[j] for j in eff.joints) if kind != "unexplained" else ()
+    label = f"{kind.replace('_', ' ')}" + (f" on {', '.join(joints)}" if joints else "") + (
+        f" (harmonic {eff.harmonic})" if getattr(eff, "harmonic", None) is not None else "") + (
+        f" (a sway with {model.joint_names[eff.joints[0]]}, no named cause has that shape)" if kind == "unexplained" else "")
+    if kind == "unexplained":
+        hit = any(k == "unexplained" for k, _ in named)
+    else:
+        hit = any(k == kind and j == joints for k, j in named)
+    verdict = "named correctly" if hit else ("not named" if not named else f"named differently: {named}")
+    say(f"The twin hid {label}, sized {n_noise:.1f}x the noise -> {verdict}.", 3)

@@ -1,0 +1,173 @@
+"""`calib demo` end to end in a subprocess: it starts its own `calib serve`, tells the story, saves the report
+and stops the server. The printed figures are checked against the calibration JSON (a fresh server on the same
+database) and against predictions recomputed over HTTP on the same validation poses."""
+from __future__ import annotations
+
+import os
+import re
+import sqlite3
+import subprocess
+import sys
+
+import httpx
+import numpy as np
+import pytest
+
+from calib_core import datasets
+from calib_core.identify import evaluate, identify
+from calib_core.model import LENGTH_TO_MM
+from service import demo
+
+from .conftest import ROOT, Server, base_env
+
+UUID = r"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}"
+NUM = r"(\d+\.\d+)"
+
+
+def calib(*args, cwd, env, timeout=300) -> subprocess.CompletedProcess:
+    env = dict(env, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def flat(text: str) -> str:
+    return " ".join(text.split())
+
+
+def row(story: str, label: str) -> tuple[str, str]:
+    m = re.search(re.escape(label) + r"[^:]*:\s+" + NUM + r" mm RMS, max\s+" + NUM + " mm", story)
+    assert m, (label, story)
+    return m.group(1), m.group(2)
+
+
+def f3(*values: float) -> tuple[str, ...]:
+    return tuple(f"{v:.3f}" for v in values)
+
+
+def validation_errors(server, cal_id, model, val) -> tuple[float, float]:
+    """What POST /calibrations/{id}/predict gives on the validation poses, as the demo computes it."""
+    api = demo.Api(server.url, None)
+    try:
+        e = demo.errors_mm(val.points, api.predict_mm(cal_id, model, val))
+    finally:
+        api.close()
+    return e["rms_mm"], e["max_mm"]
+
+
+def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
+    """The common checks of a story: chapters in order, figures equal to the JSON and to the predictions."""
+    story = flat(out)
+    chapters = ["1. The service", "2. The measurement campaign", "3. The calibration: POST /jobs",
+                "4. What the service found", "5. Compensation", "The report", "Explore the API"]
+    at = [story.find(c) for c in chapters]
+    assert -1 not in at and at == sorted(at), list(zip(chapters, at))
+    # the progress bar is on stderr, the story on stdout
+    assert "100 %" in err and "[####" in err and "[####" not in out
+    # the demo stopped the server it started
+    url = re.search(r"calib serve is running on (http://127\.0\.0\.1:\d+)", story).group(1)
+    with pytest.raises(httpx.HTTPError):
+        httpx.get(url + "/health", timeout=2)
+
+    cal_id = re.search(rf"succeeded in [\d.]+ s: calibration ({UUID}), model", story).group(1)
+    with sqlite3.connect(db_path) as c:
+        geo_id = c.execute("SELECT calibration_id FROM jobs WHERE mode = 'geometric'").fetchone()[0]
+    server = Server(f"sqlite:///{db_path}", tmp_path / "check.log")
+    try:
+        cal = server.client.get(f"/calibrations/{cal_id}").json()
+        assert server.client.get(f"/calibrations/{cal_id}/report").status_code == 200
+        d = cal["diagnosis"]
+        g, floor = d["geometric"]["holdout_rms_mm"], d["noise_floor_mm"]
+        # what the geometric model still gets wrong: the answer's own figures
+        assert (f"it leaves {g:.3f} mm RMS, {g / floor:.1f}x the noise floor of {floor:.3f} mm") in story
+        for k, f in enumerate(d["findings"], 1):
+            assert (f"Cause {k} [{f['kind']}]") in story
+            assert (f"Held-out {f['holdout_rms_before_mm']:.3f} mm -> {f['holdout_rms_after_mm']:.3f} mm, "
+                    f"{f['gain_pct']:.1f} % better") in story
+            assert flat(f["evidence"]) in story
+        assert f"model {' + '.join(cal['model'])}, {len(cal['parameters'])} parameters" in story
+        # the validation figures: nominal (registered locally), geometric and extended (predicted over HTTP)
+        model = camp.model
+        before = evaluate(identify(model, camp.cal, free=("base", "tool"), folds=1), camp.val)
+        assert row(story, "before calibration") == f3(before["rms_mm"], before["max_mm"])
+        geo = validation_errors(server, geo_id, model, camp.val)
+        ext = validation_errors(server, cal_id, model, camp.val)
+        assert row(story, "after the geometric model") == f3(*geo)
+        if d["findings"]:
+            assert row(story, "after the extended model") == f3(*ext)
+            gain = 100 * (geo[0] - ext[0]) / geo[0]
+            assert f"Gain of the extended model on the validation poses: {gain:.1f} %" in story
+    finally:
+        server.stop()
+    report = tmp_path / "calib-demo-report.html"
+    html = report.read_text()
+    assert f"Saved to {report}" in story
+    assert html.count('<img src="data:image/png;base64,') == len(cal["plots"]) >= 2
+    assert f"{cal['metrics']['holdout_rms_mm']:.3f}" in html
+    assert "http://127.0.0.1:8000/docs" in story
+    if "compensation: not available yet" not in story:  # the compensate endpoint is wired
+        assert re.search(r"reaches \d+ of \d+ targets within 0\.01 mm", story), story
+    return {"story": story, "cal": cal, "before": before, "geo": geo, "ext": ext}
+
+
+def test_demo_tells_the_whole_story(tmp_path):
+    """The README's main command (the hidden effect drawn from the seed, as without --seed)."""
+    db = tmp_path / "calib.db"
+    r = calib("demo", "--seed", "5", cwd=tmp_path, env=base_env(f"sqlite:///{db}"))
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    camp = demo.simulated(None, 5)
+    kind, effect, _ = camp.hidden
+    got = check_story(r.stdout, r.stderr, tmp_path, db, camp)
+    story, d = got["story"], got["cal"]["diagnosis"]
+    assert "150 poses stored" in story and "errors on the 100 validation poses" in story
+    assert "spray-painting robot of Wang et al." in story
+    # the story's arc: calibration removes the millimetres, the extended model the structure left
+    assert got["before"]["rms_mm"] > 10 * got["geo"][0] > 10 * got["ext"][0]
+    assert got["ext"][0] < 1.5 * d["noise_floor_mm"]
+    # the twin's secret is told, and the named cause is the hidden one
+    joints = ", ".join(camp.model.joint_names[j] for j in effect.joints)
+    assert d["findings"][0]["kind"] == kind
+    assert re.search(rf"The twin hid {kind.replace('_', ' ')} on {joints}, sized [\d.]+x the noise -> named correctly",
+                     story), story
+
+
+@pytest.mark.skipif(not datasets.available(), reason="the shared real datasets are not present")
+def test_demo_on_real_measurements(tmp_path):
+    env = base_env(f"sqlite:///{tmp_path / 'calib.db'}")
+    r = calib("convert-dataset", "motoman_leica", str(tmp_path / "motoman"), cwd=tmp_path, env=env)
+    assert r.returncode == 0, r.stderr
+    model_file, data_file = tmp_path / "motoman" / "model.json", tmp_path / "motoman" / "measurements.csv"
+    r = calib("demo", "--robot", str(model_file), "--data", str(data_file), cwd=tmp_path, env=env)
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    camp = demo.from_files(model_file, data_file, 0)
+    assert (camp.cal.n_poses, camp.val.n_poses) == (410, 176)
+    got = check_story(r.stdout, r.stderr, tmp_path, tmp_path / "calib.db", camp)
+    story = got["story"]
+    assert "on real measurements: robot motoman_ma1400_right_leica" in story
+    assert "176 poses (30 %) held out at random (seed 0) before the upload" in story
+    assert "410 poses stored" in story and "The twin" not in story
+    assert got["cal"]["metrics"]["n_poses"] == 410
+    assert got["geo"][0] < got["before"]["rms_mm"]
+    # the uploaded poses are exactly the 70 %: nothing of the validation set reached the service
+    assert not set(camp.val.point_ids) & set(got["cal"]["diagnosis"]["per_pose"]["point"])
+
+
+def test_demo_arguments_are_checked(tmp_path):
+    env = base_env(f"sqlite:///{tmp_path / 'calib.db'}")
+    r = calib("demo", "--robot", "model.json", cwd=tmp_path, env=env, timeout=60)
+    assert r.returncode == 2 and "--robot and --data go together" in r.stderr
+    r = calib("demo", "--effect", "gremlins", cwd=tmp_path, env=env, timeout=60)
+    assert r.returncode == 2 and "invalid choice" in r.stderr
+    (tmp_path / "model.json").write_text("{}")
+    (tmp_path / "m.csv").write_text("x\n")
+    r = calib("demo", "--robot", "model.json", "--data", "m.csv", cwd=tmp_path, env=env, timeout=60)
+    assert r.returncode == 2 and "is not valid" in r.stderr
+    assert not (tmp_path / "calib.db").exists()  # nothing started for bad input
+
+
+def test_demo_help_lists_the_options():
+    r = subprocess.run([sys.executable, "-m", "service.cli", "demo", "--help"], cwd=ROOT, capture_output=True,
+                       text=True, timeout=60, env=dict(os.environ))
+    assert r.returncode == 0
+    for opt in ("--effect", "--seed", "--robot", "--data", "--report", "--keep-serving"):
+        assert opt in r.stdout
+    assert np.all([k in r.stdout for k in ("joint_compliance", "thermal_drift", "none")])

@@ -1,0 +1,193 @@
+"""The calibration report and its plots, over real HTTP against `calib serve`: the answer lists the plots and
+the error table, every plot is a PNG, the page renders in headless Chromium with no broken image and holds the
+figures of the calibration JSON."""
+from __future__ import annotations
+
+import html as htmllib
+import re
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calib_core import Twin, parse_model, write_measurements
+from calib_core.robots import spray7
+from calib_core.twin import draw_hidden_effect
+from service.report.figures import sig
+
+from .conftest import wait_for
+
+CHROMIUM = Path("/usr/bin/chromium")
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def run_job(server, ms_id: str, mode: str) -> dict:
+    r = server.client.post("/jobs", json={"measurement_set_id": ms_id, "model": mode})
+    assert r.status_code == 202, r.text
+
+    def done():
+        j = server.client.get(r.headers["location"]).json()
+        return j if j["status"] in ("succeeded", "failed") else None
+
+    j = wait_for(done, 90, f"the {mode} job")
+    assert j["status"] == "succeeded", j
+    return server.client.get(f"/calibrations/{j['calibration_id']}").json()
+
+
+@pytest.fixture(scope="module")
+def calibrations(server) -> dict:
+    """An auto calibration of a twin hiding a backlash (one finding with a plot) and a geometric one."""
+    model = parse_model(spray7())
+    twin = Twin(model, 3)
+    q = twin.sample_joints(150)
+    draw_hidden_effect(twin, "backlash", 5.0, q, np.random.default_rng(3))
+    rid = server.client.post("/robots", json=spray7()).json()["id"]
+    r = server.client.post(f"/robots/{rid}/measurements",
+                           files={"file": ("b.csv", write_measurements(twin.measure(q), model))})
+    assert r.status_code == 201, r.text
+    ms = r.json()["id"]
+    return {"auto": run_job(server, ms, "auto"), "geometric": run_job(server, ms, "geometric")}
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    assert data[:8] == PNG_MAGIC
+    return struct.unpack(">II", data[16:24])
+
+
+def test_answer_lists_plots_report_and_error_table(calibrations):
+    a = calibrations["auto"]
+    cid = a["id"]
+    assert a["report_url"] == f"/calibrations/{cid}/report"
+    names = [p["name"] for p in a["plots"]]
+    assert names == ["errors", "distribution", "finding-1"]
+    for p in a["plots"]:
+        assert p["url"] == f"/calibrations/{cid}/plots/{p['name']}.png" and p["title"]
+    f = a["diagnosis"]["findings"][0]
+    assert f["kind"] == "backlash" and f["plot_url"] == f"/calibrations/{cid}/plots/finding-1.png"
+    # the error table is the answer's own numbers (one source): the final row is `metrics`, the geometric row
+    # the diagnosis, the held-out mean / max the stored per-pose distances
+    geo, fin = a["accuracy"]["models"]
+    assert fin["final"] and fin["model"] == "geometric + backlash"
+    assert fin["holdout"]["rms_mm"] == a["metrics"]["holdout_rms_mm"]
+    assert fin["holdout"]["max_mm"] == a["metrics"]["holdout_max_mm"]
+    assert fin["fit"] == {"mean_mm": a["metrics"]["mean_mm"], "rms_mm": a["metrics"]["rms_mm"],
+                          "max_mm": a["metrics"]["max_mm"]}
+    assert geo["holdout"]["rms_mm"] == a["diagnosis"]["geometric"]["holdout_rms_mm"]
+    per_pose = np.array(a["diagnosis"]["per_pose"]["geometric_holdout_mm"])
+    assert geo["holdout"]["mean_mm"] == pytest.approx(per_pose.mean(), rel=1e-12)
+    assert geo["holdout"]["max_mm"] == pytest.approx(per_pose.max(), rel=1e-12)
+    assert np.sqrt(np.mean(per_pose**2)) == pytest.approx(geo["holdout"]["rms_mm"], rel=1e-9)
+    assert a["accuracy"]["noise_floor_mm"] == a["diagnosis"]["noise_floor_mm"]
+    assert "ISO 9283" in a["accuracy"]["note"]
+
+
+def test_every_listed_plot_is_a_png(server, calibrations):
+    for p in calibrations["auto"]["plots"]:
+        r = server.client.get(p["url"])
+        assert r.status_code == 200, r.text
+        assert r.headers["content-type"] == "image/png"
+        w, h = png_size(r.content)
+        assert w >= 600 and h >= 300, (p["name"], w, h)
+        assert server.client.get(p["url"]).content == r.content  # cached, identical
+
+
+def test_unknown_plot_and_calibration_are_problems(server, calibrations):
+    cid = calibrations["auto"]["id"]
+    r = server.client.get(f"/calibrations/{cid}/plots/finding-9.png")
+    assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
+    assert "errors, distribution, finding-1" in r.json()["detail"]
+    for path in ("/calibrations/nope/report", "/calibrations/nope/plots/errors.png"):
+        r = server.client.get(path)
+        assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json"), path
+
+
+def test_geometric_calibration_has_a_report_without_plots(server, calibrations):
+    g = calibrations["geometric"]
+    assert g["plots"] == [] and g["accuracy"]["models"][0]["model"] == "geometric"
+    r = server.client.get(g["report_url"])
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert "<img" not in r.text and f"{g['metrics']['holdout_rms_mm']:.3f}" in r.text
+    assert server.client.get(f"/calibrations/{g['id']}/plots/errors.png").status_code == 404
+
+
+def test_inline_report_is_one_self_contained_file(server, calibrations):
+    a = calibrations["auto"]
+    r = server.client.get(a["report_url"], params={"inline": "true"})
+    assert r.status_code == 200
+    srcs = re.findall(r'<img src="([^"]+)"', r.text)
+    assert len(srcs) == len(a["plots"]) and all(s.startswith("data:image/png;base64,") for s in srcs)
+    assert "@media print" in r.text
+
+
+def test_predict_takes_temperature_and_timestamp(server, calibrations):
+    cid = calibrations["auto"]["id"]
+    q = [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]] * 2
+    r = server.client.post(f"/calibrations/{cid}/predict", json={
+        "joints": q, "temperature": [20.0, 25.0], "timestamp": "2026-11-03T08:00:19+00:00"})
+    assert r.status_code == 200, r.text
+    for bad in ({"temperature": [20.0]}, {"timestamp": ["yesterday", "2026-11-03T08:00:19Z"]}):
+        r = server.client.post(f"/calibrations/{cid}/predict", json={"joints": q, **bad})
+        assert r.status_code == 422 and r.json()["errors"], r.text
+
+
+def text_of(dom: str) -> str:
+    body = re.sub(r"<(script|style)\b.*?</\1>", " ", dom, flags=re.S)
+    return re.sub(r"\s+", " ", htmllib.unescape(re.sub(r"<[^>]+>", " ", body)))
+
+
+def chromium(tmp_path: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                           "--no-first-run", "--disable-background-networking", "--disable-component-update",
+                           "--disable-sync", "--disable-dev-shm-usage", f"--user-data-dir={tmp_path / 'chromium'}",
+                           *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium is not installed (.ci/run installs it)")
+def test_report_renders_in_headless_chromium(server, calibrations, tmp_path):
+    a = calibrations["auto"]
+    r = chromium(tmp_path, "--virtual-time-budget=15000", "--dump-dom", server.url + a["report_url"])
+    assert r.returncode == 0, r.stderr[-3000:]
+    dom = r.stdout
+    body = re.search(r"<body([^>]*)>", dom)
+    assert body, dom[:2000]
+    attrs = dict(re.findall(r'(data-images-[a-z]+)="([^"]*)"', body.group(1)))
+    # every <img> loaded (complete, naturalWidth > 0): one per plot of the answer, none broken
+    assert attrs.get("data-images-checked") == "yes", (attrs, r.stderr[-2000:])
+    assert attrs["data-images-total"] == str(len(a["plots"])) == "3"
+    assert attrs["data-images-broken"] == "0"
+    srcs = re.findall(r'<img src="([^"]+)"', dom)
+    assert sorted(srcs) == sorted(f"plots/{p['name']}.png" for p in a["plots"])
+
+    text = text_of(dom)
+    d, m = a["diagnosis"], a["metrics"]
+    figures = {"held-out RMS": m["holdout_rms_mm"], "held-out max": m["holdout_max_mm"], "fit RMS": m["rms_mm"],
+               "fit max": m["max_mm"], "fit mean": m["mean_mm"], "noise floor": d["noise_floor_mm"],
+               "geometric held-out RMS": d["geometric"]["holdout_rms_mm"], "geometric fit RMS": d["geometric"]["rms_mm"]}
+    for row in a["accuracy"]["models"]:
+        for part in ("fit", "holdout"):
+            for k, v in row[part].items():
+                if k.endswith("_mm") and v is not None:
+                    figures[f"{row['model']} {part} {k}"] = v
+    for f in d["findings"]:
+        figures[f"{f['kind']} before"] = f["holdout_rms_before_mm"]
+        figures[f"{f['kind']} after"] = f["holdout_rms_after_mm"]
+    for what, v in figures.items():
+        assert f"{v:.3f}" in text, (what, f"{v:.3f}")
+    for f in d["findings"]:
+        assert f"{f['gain_pct']:.1f} %" in text
+        assert f["evidence"] in text
+    for p in a["parameters"]:
+        assert re.search(rf"\b{re.escape(p['name'])} {re.escape(sig(p['value'], p['std']))} ", text), p
+    assert "ISO 9283" in text and d["explanation"] in text
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium is not installed (.ci/run installs it)")
+def test_report_prints_to_pdf(server, calibrations, tmp_path):
+    pdf = tmp_path / "report.pdf"
+    r = chromium(tmp_path, "--virtual-time-budget=15000", "--no-pdf-header-footer", f"--print-to-pdf={pdf}",
+                 server.url + calibrations["auto"]["report_url"])
+    assert r.returncode == 0 and pdf.exists(), r.stderr[-3000:]
+    data = pdf.read_bytes()
+    assert data[:5] == b"%PDF-" and len(re.findall(rb"/Type\s*/Page\b", data)) >= 2
