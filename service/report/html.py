@@ -24,10 +24,11 @@ h1 { font-size: 1.6em; margin: 0 0 .2em; }
 h2 { font-size: 1.2em; margin: 1.8em 0 .5em; padding-bottom: .2em; border-bottom: 2px solid var(--line); }
 h3 { font-size: 1.05em; margin: 1.2em 0 .3em; }
 .sub { color: var(--mute); margin: 0 0 1em; font-size: .92em; }
-.cards { display: grid; grid-template-columns: repeat(auto-fit, minmax(12em, 1fr)); gap: .8em; margin: 1em 0; }
+.cards { display: grid; grid-template-columns: repeat(auto-fit, minmax(10em, 1fr)); gap: .8em; margin: 1em 0; }
 .card { border: 1px solid var(--line); border-radius: 6px; padding: .6em .8em; }
 .card .k { color: var(--mute); font-size: .82em; }
 .card .v { font-size: 1.45em; font-weight: 600; font-variant-numeric: tabular-nums; }
+.card .v.cause { font-size: 1.05em; }
 .card .v small { font-size: .6em; font-weight: 400; color: var(--mute); }
 .explain { background: #f1f5fb; border-left: 4px solid var(--fin); padding: .6em .9em; }
 table { border-collapse: collapse; width: 100%; margin: .4em 0 .8em; font-size: .92em; }
@@ -131,8 +132,8 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
       f'{_e(m.get("n_poses"))} measured poses · model: <b>{_e(final_label)}</b> · '
       f'units {_e(units.get("length", "mm"))}, {_e(units.get("angle", "deg"))}; every error in mm</p>')
     w('<nav class="noprint"><a href="#accuracy">Accuracy</a><a href="#diagnosis">Diagnosis</a>'
-      '<a href="#parameters">Parameters</a><a href="#identifiability">Identifiability</a>'
-      f'<a href="../{_e(cid)}">JSON</a></nav>')
+      '<a href="#parameters">Parameters</a><a href="#identifiability">Identifiability</a>' +
+      (f'<a href="../{_e(cid)}">JSON</a>' if png is None else "") + "</nav>")
 
     # --- in short
     w("<h2>In short</h2><div class=\"cards\">")
@@ -152,6 +153,10 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
     if acc.get("noise_floor_mm") is not None:
         w(f'<div class="card"><div class="k">noise floor (what a perfect model leaves)</div>'
           f'<div class="v">{mm(acc["noise_floor_mm"])} <small>mm RMS</small></div></div>')
+    if d:
+        causes = "; ".join(finding_title(f) for f in findings) or "none: the geometric model is complete"
+        w(f'<div class="card"><div class="k">cause{"s" if len(findings) > 1 else ""} found</div>'
+          f'<div class="v cause">{_e(causes)}</div></div>')
     w("</div>")
     if d.get("explanation"):
         w(f'<p class="explain">{_e(d["explanation"])}</p>')
