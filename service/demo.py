@@ -449,9 +449,14 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
     say(f"Served at {server.url}/calibrations/{cal_id}/report while the service runs; "
         f"the same figures as JSON: GET /calibrations/{cal_id}.", 3)
     head("Explore the API")
-    say("Start the service with `calib serve` (same database: this calibration is there) and open "
-        "http://127.0.0.1:8000/docs to try every call; `calib demo --keep-serving` keeps this run's service up "
-        f"instead. Total demo time {time.monotonic() - t_start:.0f} s.", 3)
+    if args.keep_serving:
+        say(f"Open {server.url}/docs to try every call on this run's service; later, `calib serve` (same database: "
+            "this calibration is there) serves them at http://127.0.0.1:8000/docs.", 3)
+    else:
+        say("Start the service with `calib serve` (same database: this calibration is there) and open "
+            "http://127.0.0.1:8000/docs to try every call; `calib demo --keep-serving` keeps this run's service "
+            "up instead.", 3)
+    say(f"Total demo time {time.monotonic() - t_start:.0f} s.", 3)
     return 0
 
 
