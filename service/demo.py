@@ -446,8 +446,9 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(html, encoding="utf-8")
     say(f"Saved to {report} (one file, plots included: open it in a browser, print it, mail it).", 3)
-    say(f"Served at {server.url}/calibrations/{cal_id}/report while the service runs; "
-        f"the same figures as JSON: GET /calibrations/{cal_id}.", 3)
+    live = server.url if args.keep_serving else "http://127.0.0.1:8000"
+    say(f"Live at {live}/calibrations/{cal_id}/report" + ("" if args.keep_serving else " once `calib serve` runs") +
+        f"; the same figures as JSON: GET /calibrations/{cal_id}.", 3)
     head("Explore the API")
     if args.keep_serving:
         say(f"Open {server.url}/docs to try every call on this run's service; later, `calib serve` (same database: "
@@ -508,9 +509,12 @@ def _reveal(camp: Campaign, findings: list[dict]) -> None:
         return
     kind, eff, n_noise = camp.hidden
     joints = tuple(model.joint_names[j] for j in eff.joints) if kind != "unexplained" else ()
-    label = f"{kind.replace('_', ' ')}" + (f" on {', '.join(joints)}" if joints else "") + (
-        f" (harmonic {eff.harmonic})" if getattr(eff, "harmonic", None) is not None else "") + (
-        f" (a sway with {model.joint_names[eff.joints[0]]}, no named cause has that shape)" if kind == "unexplained" else "")
+    if kind == "unexplained":
+        label = (f"a sway of the tool with {model.joint_names[eff.joints[0]]} (no named cause has that shape: "
+                 "it must come out as unexplained)")
+    else:
+        label = f"{kind.replace('_', ' ')}" + (f" on {', '.join(joints)}" if joints else "") + (
+            f" (harmonic {eff.harmonic})" if getattr(eff, "harmonic", None) is not None else "")
     if kind == "unexplained":
         hit = any(k == "unexplained" for k, _ in named)
     else:
