@@ -15,7 +15,7 @@ from scipy import stats
 
 from . import kinematics as K
 from .effects import Context, Effect, candidates
-from .effects.residual import ResidualField, fit_residual_field
+from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .identify import Calibration, identify, tracker_sigma_mm
 from .io import Measurements
 from .model import RobotModel
@@ -32,6 +32,10 @@ MIN_EXCESS_FRACTION = 0.2
 smaller shares are what a wrong cause picks up from a true one outside the vocabulary."""
 NAMED_SHARE = 0.4
 """A named cause must explain at least this share of what a smooth joint-space field explains."""
+LOOKALIKE = 0.8
+MAX_LOOKALIKES = 4
+INDISTINGUISHABLE = 1.02
+"""Rivals explaining at least LOOKALIKE of the winner's share are refitted and judged on held-out poses."""
 MAX_FINDINGS = 5
 UNEXPLAINED_RATIO = 1.25
 """Held-out RMS above this multiple of the floor after the named causes means structure is left."""
@@ -177,7 +181,7 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
             effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
             regressor=b.regressor, regressor_label=b.regressor_label,
             projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
-    field = ResidualField((), length_scale=1.0)
+    field = ResidualField((), length_scale=1.0, prior_std=max(PRIOR_STD_MM, 2.0 * cal.metrics()["holdout_rms_mm"]))
     Cw, _ = _weighted_columns(field, ctx, Jq, sigma)
     Cp = Cw - Q @ (Q.T @ Cw)
     ridge = np.eye(Cp.shape[1]) / field.prior_std**2
@@ -185,7 +189,46 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss
 
 
-def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibration, floor: float) -> dict:
+def _best_of_lookalikes(c, trial, ranked, threshold, model, meas, chosen, loss, folds, x_ref, share=None):
+    """Some causes look alike over a limited range (a scale error and a first harmonic, a short link's
+    bending and the compliance of the joint before it): among the significant candidates that explain
+    nearly as much as the winner, keep the best on held-out poses and name the ones it cannot beat."""
+    tried = [(c, trial)]
+    share = LOOKALIKE if share is None else share
+    rivals = [a for a in ranked if a is not c and a.log_p <= threshold and a.explained >= share * c.explained]
+    for alt in rivals[:MAX_LOOKALIKES]:
+        tried.append((alt, identify(model, meas, effects=tuple(chosen + [alt.effect]), loss=loss, folds=folds,
+                                    x_ref=x_ref)))
+    tried.sort(key=lambda t: t[1].metrics()["holdout_rms_mm"])
+    best = tried[0][1].metrics()["holdout_rms_mm"]
+    alike = [{"kind": a.effect.kind, "joints": [model.joint_names[j] for j in a.effect.joints],
+              "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
+             for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best]
+    return tried[0][0], tried[0][1], alike
+
+
+def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, loss, folds, floor):
+    """Greedy order can mislead when causes overlap: test each finding again against its look-alikes with
+    every other finding in the model; swap it for a better one, or name the ones it cannot beat."""
+    for k in range(len(chosen)):
+        others = chosen[:k] + chosen[k + 1:]
+        base = identify(model, meas, effects=tuple(others), loss=loss, folds=folds, x_ref=current.x)
+        ranked, _ = screen(base, meas, sigma, [e for e in pool if e not in others], current.x, alpha)
+        mine = next((c for c in ranked if c.effect == chosen[k]), None)
+        if mine is None:
+            continue
+        threshold = np.log(alpha / max(len(pool), 1))
+        c, trial, alike = _best_of_lookalikes(mine, current, ranked, threshold, model, meas, others, loss, folds,
+                                              current.x, share=0.5)
+        if c is not mine:
+            chosen[k] = c.effect
+            current = identify(model, meas, effects=tuple(chosen), loss=loss, folds=folds, x_ref=current.x)
+        findings[k] = _finding(c, model, base, current, floor, alike)
+    return current
+
+
+def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibration, floor: float,
+             alike: list[dict]) -> dict:
     hb, ha = before.metrics()["holdout_rms_mm"], after.metrics()["holdout_rms_mm"]
     e = c.effect
     params = [p for p in after.parameters() if p.get("effect") == e.kind
@@ -201,6 +244,11 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
                     "residual_mm": c.projected_residual_mm.tolist(), "fit_mm": c.fitted_mm.tolist()}}
     if e.harmonic is not None:
         out["harmonic"] = e.harmonic
+    if alike:
+        out["indistinguishable_from"] = alike
+        out["evidence"] += ("; on this pose set it cannot be told apart from " +
+                            ", ".join(f"{a['kind']} {','.join(a['joints'])}".strip() for a in alike) +
+                            " (held-out within 2 %): measure poses that separate them to be sure")
     return out
 
 
@@ -213,6 +261,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     report(0.05, "identifying the geometric model")
     geo = identify(model, meas, loss=loss, folds=folds)
     floor, note = noise_floor_mm(meas, sigma, repeatability_mm)
+    sigma = geo.sigma_mm  # screen with the weights of the fit: noise plus what the geometry leaves
     pool, notes = candidates(model, meas)
     x_ref = geo.x
     current, chosen = geo, []
@@ -243,13 +292,22 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                                  "why": f"significant in the fit, but on held-out poses it removes too little "
                                         f"({hb:.3f} -> {ha:.3f} mm, noise floor {floor:.3f} mm)"})
                 continue
-            findings.append(_finding(c, model, current, trial, floor))
+            c, trial, alike = _best_of_lookalikes(c, trial, ranked, threshold, model, meas, chosen, loss, folds,
+                                                  x_ref)
+            findings.append(_finding(c, model, current, trial, floor, alike))
             chosen.append(c.effect)
             pool = [e for e in pool if e != c.effect]
             current, accepted = trial, True
             x_ref = trial.x  # later bases (loads, frames) on the better geometry
             break
         if not accepted:
+            break
+    for _ in range(3 if len(chosen) > 1 else 0):
+        report(0.8, "revisiting each finding with the others in the model")
+        before = list(chosen)
+        current = _revisit(findings, chosen, current, candidates(model, meas)[0], model, meas, sigma, alpha,
+                           loss, folds, floor)
+        if chosen == before:
             break
     if unexplained and current.metrics()["holdout_rms_mm"] > UNEXPLAINED_RATIO * floor:
         report(0.85, "looking for structure no named cause explains")

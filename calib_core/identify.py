@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import brentq
 
 from . import kinematics as K
 from .effects import Context, Effect, apply, effect_from_state, effect_state
@@ -88,6 +89,8 @@ class Calibration:
     point_ids: list[str] = field(default_factory=list)
     holdout_residual_mm: np.ndarray | None = None  # (N,) cross-validated distance per pose
     effects: tuple[Effect, ...] = ()
+    sigma_mm: np.ndarray | None = None  # (N,) the per-axis weights used: noise and model error
+    model_error_mm: float = 0.0  # per-axis std of what the model leaves beyond the measurement noise
 
     @property
     def effect_values(self) -> tuple[np.ndarray, ...]:
@@ -128,6 +131,7 @@ class Calibration:
         d = np.linalg.norm(self.solution.residual, axis=1)
         out = {"n_poses": int(len(d)), "n_parameters": int(len(self.free)), "rms_mm": _rms(d),
                "mean_mm": float(d.mean()), "max_mm": float(d.max()), "sigma0": float(np.sqrt(self.solution.s2)),
+               "model_error_mm": self.model_error_mm,
                "iterations": self.solution.iterations, "converged": self.solution.converged}
         if self.holdout_residual_mm is not None:
             out["holdout_rms_mm"] = _rms(self.holdout_residual_mm)
@@ -203,6 +207,19 @@ def _select(names: list[str], ident: Identifiability, free: tuple[str, ...] | No
     if free is not None:
         keep = [i for i in keep if any(names[i] == f or names[i].startswith(f + ".") for f in free)]
     return np.array(sorted(keep))
+
+
+def model_error_sigma(residual: np.ndarray, sigma: np.ndarray, n_params: int, weights: np.ndarray) -> float:
+    """Per-axis std s (mm) of the error beyond the measurement noise (a variance component): the root of
+    sum w r^2 / (sigma^2 + s^2) = m - p; 0 when the noise alone explains the residual. Weighting by
+    sigma^2 + s^2 keeps a few very precise tracker readings from dominating a model-error-limited fit."""
+    r2 = weights * (residual**2).sum(1)
+    dof = 3 * len(r2) - n_params
+    f = lambda s2: float((r2 / (sigma**2 + s2)).sum() / 3.0 - dof / 3.0)  # noqa: E731
+    if dof <= 0 or f(0.0) <= 0.0:
+        return 0.0
+    hi = float(r2.max())
+    return float(np.sqrt(brentq(f, 0.0, hi, xtol=1e-12 * hi + 1e-15)))
 
 
 def _split(theta: np.ndarray, effects, model) -> list[np.ndarray]:
@@ -304,10 +321,15 @@ def identify(
         bases = effect_bases(model, meas, effects, x_ref, R0)
     eprior = _effect_prior(model, effects)
     sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior)
+    s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
+    if s_model > 0.0:  # weight by measurement noise plus what the model leaves, then solve again
+        sigma = np.sqrt(sigma**2 + s_model**2)
+        sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior)
     x = x0.copy()
     x[idx] = sol.x[: len(idx)]
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
-                      point_ids=list(meas.point_ids), effects=tuple(effects))
+                      point_ids=list(meas.point_ids), effects=tuple(effects), sigma_mm=sigma,
+                      model_error_mm=s_model)
     if folds > 1 and meas.n_poses >= 2 * folds:
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
                                                  eprior)

@@ -6,6 +6,8 @@ import dataclasses
 import numpy as np
 
 from ..io import Measurements
+from ..kinematics import Chain, nominal_vector
+from ..statics import joint_loads
 from ..model import RobotModel
 from .base import Basis, Context, Effect, apply
 from .cartesian_effects import AxisStraightness, LinkDeflection, ThermalDrift
@@ -24,8 +26,13 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
     n = model.n_joints
     moving = [j for j in range(n) if np.ptp(meas.joints[:, j]) > 1e-3]  # rad or mm: a joint that moves
     if model.has_mass:
-        out += [JointCompliance((j,)) for j in range(n)]  # its load varies even where the joint stands still
-        out += [Backlash((j,)) for j in range(n)]
+        # a joint's load can vary even where the joint stands still; a vertical axis carries none
+        load = joint_loads(Chain(model, nominal_vector(model), meas.joints), meas.payload_kg())
+        span = np.ptp(load, axis=0)
+        loaded = [j for j in range(n) if span[j] > 1e-6 * max(span.max(), 1e-300)]
+        out += [JointCompliance((j,)) for j in loaded]
+        big = np.abs(load).max(axis=0)
+        out += [Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * big[j])) for j in loaded]
         out += [LinkDeflection((k,)) for k in range(1, n)]
     else:
         notes.append("the model has no masses: joint_compliance, backlash and link_deflection cannot be tested")

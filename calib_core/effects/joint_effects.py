@@ -44,10 +44,13 @@ class JointCompliance(Effect):
 
 @dataclass(frozen=True)
 class Backlash(Effect):
-    """dq_j = b * sign(load_j): the joint sits on one flank of its gear play or the other."""
+    """dq_j = b/2 * tanh(load_j / transition): the joint sits on one flank of its gear play or the other;
+    near zero load it floats in the play (transition in N*m or N; 0 = a sharp switch)."""
 
     kind = "backlash"
     needs = "mass"
+    transition: float = 0.0
+    TRANSITION_SHARE = 0.02  # of the largest load in the calibration data
 
     def parameter_names(self, model):
         return [f"{model.joint_names[self.joints[0]]}.backlash"]
@@ -57,7 +60,8 @@ class Backlash(Effect):
 
     def basis(self, ctx: Context) -> Basis:
         j = self.joints[0]
-        s = np.sign(ctx.loads[:, j])
+        load = ctx.loads[:, j]
+        s = np.tanh(load / self.transition) if self.transition > 0 else np.sign(load)
         N, n = ctx.meas.joints.shape
         return Basis(joint_basis(N, n, j, 0.5 * s[:, None]), None, ctx.loads[:, j],
                      f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")

@@ -15,9 +15,9 @@ import numpy as np
 
 from .base import Basis, Context, Effect
 
-LENGTH_SCALES = (None, 1.0, 2.0)
+LENGTH_SCALES = (None, 1.0, 2.0, 3.0)
 """None: additive harmonics only; otherwise also random Fourier features of that length scale."""
-N_FEATURES = 48
+N_FEATURES = 96
 PRIOR_STD_MM = 0.5
 
 
@@ -87,8 +87,9 @@ def fit_residual_field(model, meas, current, chosen, x_ref, *, loss=None, folds=
     from ..identify import identify
 
     best = None
+    prior = max(PRIOR_STD_MM, 2.0 * current.metrics()["holdout_rms_mm"])  # ridge on the scale of the residual
     for ls in LENGTH_SCALES:
-        rf = ResidualField((), length_scale=ls)
+        rf = ResidualField((), length_scale=ls, prior_std=prior)
         try:
             cal = identify(model, meas, effects=tuple(chosen) + (rf,), loss=loss, folds=folds, x_ref=x_ref)
         except ValueError:

