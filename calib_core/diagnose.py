@@ -91,6 +91,7 @@ class Candidate:
 class Diagnosis:
     calibration: Calibration  # the final (extended) model
     geometric: Calibration
+    nominal: Calibration  # the nominal model with only the tracker frame and tool registered
     noise_floor_mm: float
     noise_note: str
     findings: list[dict] = field(default_factory=list)
@@ -103,7 +104,9 @@ class Diagnosis:
         return {
             "noise_floor_mm": self.noise_floor_mm,
             "noise_floor_basis": self.noise_note,
-            "geometric": {"rms_mm": g["rms_mm"], "holdout_rms_mm": g["holdout_rms_mm"], "max_mm": g["max_mm"]},
+            "nominal": {k: self.nominal.metrics()[k] for k in ("rms_mm", "max_mm", "holdout_rms_mm", "holdout_max_mm")},
+            "geometric": {"rms_mm": g["rms_mm"], "holdout_rms_mm": g["holdout_rms_mm"], "max_mm": g["max_mm"],
+                          "holdout_max_mm": g["holdout_max_mm"]},
             "findings": self.findings,
             "not_findings": self.rejected,
             "notes": self.notes,
@@ -319,7 +322,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 current = trial
     if chosen:  # one last joint fit with every basis on the final geometry
         current = identify(model, meas, effects=current.effects, loss=loss, folds=folds, x_ref=current.x)
-    d = Diagnosis(calibration=current, geometric=geo, noise_floor_mm=floor, noise_note=note, findings=findings,
+    nominal = identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
+    d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note, findings=findings,
                   rejected=rejected, notes=notes)
     d.explanation = explain(d, model)
     report(1.0, "diagnosis done")
