@@ -240,7 +240,7 @@ def effect_bases(model, meas, effects, x, R0) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(bq, axis=2), np.concatenate(bp, axis=2)
 
 
-def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None) -> Solution:
+def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None) -> Solution:
     """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian."""
     q, y = meas.joints, meas.points
     p_geo = len(idx)
@@ -260,10 +260,10 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
         J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
         return y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
 
-    start = np.r_[x0[idx], np.zeros(K_eff)]
+    nominal = np.r_[x0[idx], np.zeros(K_eff)]
     use_prior = bool(np.isfinite(prior_std).any())
-    return least_squares(residual_jac, start, sigma, prior=start if use_prior else None,
-                         prior_std=prior_std if use_prior else None, loss=loss)
+    return least_squares(residual_jac, nominal if start is None else start, sigma,
+                         prior=nominal if use_prior else None, prior_std=prior_std if use_prior else None, loss=loss)
 
 
 def _effect_prior(model, effects) -> np.ndarray | None:
@@ -324,7 +324,7 @@ def identify(
     s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
     if s_model > 0.0:  # weight by measurement noise plus what the model leaves, then solve again
         sigma = np.sqrt(sigma**2 + s_model**2)
-        sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior)
+        sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x)
     x = x0.copy()
     x[idx] = sol.x[: len(idx)]
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
