@@ -14,26 +14,17 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import time  # noqa: E402
 
 import numpy as np
 from scipy.optimize import least_squares as scipy_least_squares
 
+from benchmarks import best_time  # noqa: E402
 from calib_core import kinematics as K
 from calib_core.identifiability import analyse
 from calib_core.identify import identify, prealign, tracker_sigma_mm
 from calib_core.model import parse_model
 from calib_core.robots import spray7
 from calib_core.twin import Twin
-
-
-def _best_time(fn, repeats: int) -> tuple[float, object]:
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def _homogeneous(R, t):
@@ -85,15 +76,15 @@ def run(sizes=(150, 2000), repeats=5) -> list[dict]:
     for n in sizes:
         twin = Twin(model, seed=2023)
         meas = twin.measure(n=n)
-        t_ours, cal = _best_time(lambda: identify(model, meas, folds=0, regularize=False), repeats)
+        t_ours, cal = best_time(lambda: identify(model, meas, folds=0, regularize=False), repeats)
         fun, xs0 = peer_problem(model, meas)
         peers = {}
         for method in ("trf", "lm"):
-            peers[f"{method}, 2-point FD, our vectorised FK"] = _best_time(
+            peers[f"{method}, 2-point FD, our vectorised FK"] = best_time(
                 lambda: scipy_least_squares(fun, xs0, jac="2-point", method=method, x_scale="jac"), max(1, repeats // 2))
         slow, xs0 = peer_problem(model, meas, per_pose_forward)
         assert np.allclose(slow(xs0), fun(xs0), atol=1e-6)
-        peers["lm, 2-point FD, per-pose 4x4 FK"] = _best_time(
+        peers["lm, 2-point FD, per-pose 4x4 FK"] = best_time(
             lambda: scipy_least_squares(slow, xs0, jac="2-point", method="lm", x_scale="jac"), 1)
         cost_ours = float((cal.solution.residual / tracker_sigma_mm(meas.points)[:, None]).ravel() @
                           (cal.solution.residual / tracker_sigma_mm(meas.points)[:, None]).ravel())

@@ -35,10 +35,10 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: single-threaded BLAS, as in the service
 
 import sys  # noqa: E402
-import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from benchmarks import best_time  # noqa: E402
 from calib_core import kinematics as K  # noqa: E402
 from calib_core.identify import evaluate, identify, prealign  # noqa: E402
 from calib_core.model import GEOMETRIC, parse_model  # noqa: E402
@@ -48,15 +48,6 @@ from calib_core.twin import Twin  # noqa: E402
 _STATUS = {0: "max_nfev", 1: "gtol", 2: "ftol", 3: "xtol", 4: "ftol+xtol"}
 PYBOTICS_ORDER = ("alpha", "a", "theta", "d")
 """pybotics MDHLink vector order; ours is a, alpha, d, theta, beta (both Craig MD-H, mm / rad)."""
-
-
-def _best_time(fn, repeats: int) -> tuple[float, object]:
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def _rms(d: np.ndarray) -> float:
@@ -120,16 +111,16 @@ def run(sizes=(150, 1000), repeats=5, pybotics_repeats=None, seed=2023) -> list[
         twin = Twin(model, seed=seed)
         meas = twin.measure(n=n)
         held = twin.measure(n=100)
-        t_full, cal_full = _best_time(lambda: identify(model, meas, folds=0, regularize=False), repeats)
+        t_full, cal_full = best_time(lambda: identify(model, meas, folds=0, regularize=False), repeats)
         selected = [names[i] for i in cal_full.free]
         shared = [s for s in selected if not s.endswith(".beta")]  # what pybotics can represent
-        t_same, cal_same = _best_time(
+        t_same, cal_same = best_time(
             lambda: identify(model, meas, free=tuple(shared), regularize=False, folds=0), repeats)
 
         robot, masks = pybotics_problem(pb, model, meas, shared)
         n_pb = sum(masks["kinematic_chain_mask"]) + sum(masks["tool_mask"]) + sum(masks["world_mask"])
         assert n_pb == len(shared), (n_pb, len(shared))
-        t_pb, (handler, res) = _best_time(lambda: pybotics_solve(pb, robot, masks, meas),
+        t_pb, (handler, res) = best_time(lambda: pybotics_solve(pb, robot, masks, meas),
                                           pybotics_repeats.get(n, 1))
         errs = pb[3]
         pb_cal = _rms(errs(meas.joints, meas.points, handler.robot))

@@ -10,7 +10,6 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
 
 from benchmarks.accuracy import split_70_30  # noqa: E402
 from calib_core import datasets  # noqa: E402

@@ -2,7 +2,6 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from calib_core import kinematics as K
 from calib_core.identify import evaluate, identify
 from calib_core.model import parse_model
 from calib_core.robots import arm6, spray7

@@ -4,8 +4,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib_core import parse_model
-from calib_core.identify import CalibratedRobot
 
 from .conftest import Server, sqlite_count, wait_for
 

@@ -15,7 +15,6 @@ import pytest
 
 from calib_core import datasets
 from calib_core.identify import evaluate, identify
-from calib_core.model import LENGTH_TO_MM
 from service import demo
 
 from .conftest import ROOT, Server, base_env
