@@ -6,6 +6,7 @@ independent parameters, covariance, and k-fold cross-validated held-out error.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,8 +72,9 @@ class CalibratedRobot:
 
 
 def _columns(joints: np.ndarray, columns: Measurements | None) -> Measurements:
+    """The measurement columns effects may need (payload, temperature, time), at these joints."""
     if columns is not None:
-        return columns
+        return dataclasses.replace(columns, joints=joints)
     return Measurements(joints=joints, points=np.zeros((len(joints), 3)))
 
 

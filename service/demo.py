@@ -473,9 +473,6 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
         seeds, targets_mm = camp.val.joints, camp.val.points
     body = {"targets": (targets_mm / ls).tolist(), "seed_joints": (seeds / js).tolist()}
     r = api.c.post(f"/calibrations/{cal_id}/compensate", json=body)
-    if r.status_code == 501:
-        say("compensation: not available yet (this version of the service answers 501 Not Implemented).", 3)
-        return
     if r.status_code != 200:
         say(f"compensation: the service answered {r.status_code}: {r.text[:300]}", 3)
         return

@@ -5,9 +5,9 @@ from fastapi.responses import HTMLResponse, Response
 from sqlalchemy.orm import Session
 
 from ..deps import get_read_session, require_writer
-from ..problems import ProblemError, problem_responses
+from ..problems import problem_responses
 from . import service
-from .schemas import CalibrationOut, CompensateIn, PredictIn, PredictOut
+from .schemas import CalibrationOut, CompensateIn, CompensateOut, PredictIn, PredictOut
 
 router = APIRouter(tags=["calibrations"])
 
@@ -57,14 +57,17 @@ def predict(calibration_id: str, body: PredictIn = Body(..., openapi_examples={"
     return PredictOut(positions=positions, unit=unit)
 
 
-@router.post("/calibrations/{calibration_id}/compensate", dependencies=[Depends(require_writer)],
-             responses=problem_responses(401, 404, 413, 422, 501),
-             summary="Joint commands that put the tool on targets (not implemented yet: 501)")
-def compensate(calibration_id: str, body: CompensateIn = Body(..., openapi_examples={"spray7": {
-        "summary": "one target with its nominal joint solution",
-        "value": {"targets": [[-2821.34, 876.61, -16.36]],
-                  "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}}}),
-        s: Session = Depends(get_read_session, scope="function")):
-    """Part of a later issue: answers 501 with a problem document once the calibration is known to exist."""
-    service.get_calibration(s, calibration_id)
-    raise ProblemError(501, "compensation is not implemented yet", kind="not-implemented")
+@router.post("/calibrations/{calibration_id}/compensate", response_model=CompensateOut,
+             dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422),
+             summary="Joint commands that put the tool on targets, every identified effect included")
+def compensate(calibration_id: str, body: CompensateIn = Body(..., openapi_examples={
+        "targets": {"summary": "one target with its nominal joint solution (spray7, mm, deg)",
+                    "value": {"targets": [[-2821.34, 876.61, -16.36]],
+                              "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}},
+        "program": {"summary": "a program as joints only, telescopic J6 locked",
+                    "value": {"program_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]],
+                              "locked_joints": ["J6"]}}}),
+        s: Session = Depends(get_read_session, scope="function")) -> dict:
+    """Per target, the joint command nearest the seed for which the calibrated model (effects included) puts
+    the tool on the target, within the joint limits; an unreachable target is reported, not a failed batch."""
+    return service.compensate(s, service.get_calibration(s, calibration_id), body)

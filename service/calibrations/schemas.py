@@ -68,7 +68,28 @@ class PredictOut(BaseModel):
 
 
 class CompensateIn(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [
-        {"targets": [[-2821.34, 876.61, -16.36]], "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}]})
-    targets: list[list[Finite]]
-    seed_joints: list[list[Finite]]
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"targets": [[-2821.34, 876.61, -16.36]], "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]},
+        {"program_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]], "locked_joints": ["J6"]}]})
+    targets: list[list[Finite]] | None = Field(None, max_length=MAX_POSES,
+                                               description="N x 3 points in the measurement frame, model length unit")
+    seed_joints: list[list[Finite]] | None = Field(None, max_length=MAX_POSES,
+                                                   description="N x n joints the program would use (the nominal "
+                                                               "solution), model units: the answer stays nearest them")
+    program_joints: list[list[Finite]] | None = Field(
+        None, max_length=MAX_POSES, description="instead of targets: a program as joints only; the answer makes the "
+        "real robot reach where the nominal model puts the tool (nominal model in the calibrated base frame)")
+    locked_joints: list[str] = Field(default_factory=list, description="joint names held at the seed (for a "
+                                     "redundant robot, e.g. the telescopic J6 of the spray robot)")
+    payload: Finite | None = Field(None, description="kg at the tool during the program")
+
+
+class CompensateOut(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"example": {
+        "joints": [[2000.1, 10.02, -19.97, 30.01, -40.0, 2000.0, 15.01]], "residual_mm": [0.0004],
+        "reachable": [True], "reason": [None], "unit": {"length": "mm", "angle": "deg"}}})
+    joints: list[list[float]] = Field(description="joint commands, model units and joint order")
+    residual_mm: list[float | None] = Field(description="the calibrated model's remaining distance to each target")
+    reachable: list[bool]
+    reason: list[str | None] = Field(description="why a target could not be reached (None where it was)")
+    unit: dict[str, str]

@@ -6,6 +6,8 @@ from datetime import datetime, timezone
 import numpy as np
 from sqlalchemy.orm import Session
 
+from calib_core.compensate import compensate as solve_compensation
+from calib_core.compensate import nominal_to_calibrated
 from calib_core.identify import CalibratedRobot
 from calib_core.io import Measurements
 from calib_core.model import LENGTH_TO_MM
@@ -98,3 +100,43 @@ def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temp
     p_mm = robot.predict(q, Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load, temperature=temp,
                                          timestamp=stamps))
     return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit
+
+
+def compensate(s: Session, c: Calibration, body) -> dict:
+    """Joint commands for targets (or for a joints-only program) with the calibrated model and its effects."""
+    model = model_of(s.get(Robot, c.robot_id))
+    n = model.n_joints
+    errors = []
+    program = body.program_joints is not None
+    if program == (body.targets is not None):
+        errors.append({"field": "body", "value": None, "message": "give either targets with seed_joints, "
+                                                                  "or program_joints"})
+    rows = body.program_joints if program else body.seed_joints
+    if not program and body.targets is not None and rows is None:
+        errors.append({"field": "body.seed_joints", "value": None, "message": "seed_joints are required with targets"})
+    errors += [{"field": f"body.{'program_joints' if program else 'seed_joints'}[{i}]", "value": len(r),
+                "message": f"expected {n} joint values ({', '.join(model.joint_names)})"}
+               for i, r in enumerate(rows or []) if len(r) != n]
+    if not program and body.targets is not None:
+        errors += [{"field": f"body.targets[{i}]", "value": len(t), "message": "expected x, y, z"}
+                   for i, t in enumerate(body.targets) if len(t) != 3]
+        if rows is not None and len(rows) != len(body.targets):
+            errors.append({"field": "body.seed_joints", "value": len(rows),
+                           "message": f"one seed per target ({len(body.targets)})"})
+    errors += [{"field": "body.locked_joints", "value": j, "message": f"unknown joint; the model has "
+                f"{', '.join(model.joint_names)}"} for j in body.locked_joints if j not in model.joint_names]
+    if errors:
+        raise ProblemError(422, "the request does not fit the robot model", kind="validation", errors=errors[:1000])
+    q = np.asarray(rows, float).reshape(-1, n) * model.joint_scale()
+    robot = CalibratedRobot.from_state(model, c.robot_state)
+    columns = Measurements(joints=q, points=np.zeros((len(q), 3)),
+                           payload=None if body.payload is None else np.full(len(q), body.payload))
+    locked = tuple(body.locked_joints)
+    if program:
+        result = nominal_to_calibrated(robot, None, q, locked=locked, columns=columns)
+    else:
+        targets = np.asarray(body.targets, float).reshape(-1, 3) * LENGTH_TO_MM[model.length_unit]
+        result = solve_compensation(robot, targets, q, locked=locked, columns=columns)
+    out = result.to_dict(model)
+    out["unit"] = {"length": model.length_unit, "angle": model.angle_unit}
+    return out

@@ -65,7 +65,6 @@ def test_openapi_documents_every_call_with_examples(server):
         assert "example" in text, (path, method)
         if method == "post":
             assert "example" in str(op["requestBody"]), (path, method)
-    assert "501" in paths["/calibrations/{calibration_id}/compensate"]["post"]["responses"]
     assert PROBLEM in str(paths["/robots"]["post"]["responses"]["422"])
 
 
@@ -131,11 +130,34 @@ def test_predict_rejects_wrong_shapes(server, mset):
                                       headers={"content-type": "application/json"}), 422)
 
 
-def test_compensate_is_501(server, mset):
+def test_compensate_puts_the_model_on_the_targets(server, mset, model_doc):
     job = run_job(server, mset["id"])
-    r = server.client.post(f"/calibrations/{job['calibration_id']}/compensate",
-                           json={"targets": [[0, 0, 0]], "seed_joints": [[0] * 7]})
-    assert_problem(r, 501)
+    cal = job["calibration_id"]
+    rng = np.random.default_rng(0)
+    lo, hi = np.array([j["limits"] for j in model_doc["joints"]]).T
+    program = lo + (hi - lo) * (0.2 + 0.6 * rng.random((20, 7)))
+    targets = server.client.post(f"/calibrations/{cal}/predict", json={"joints": program.tolist()}).json()["positions"]
+    seeds = program + rng.normal(0, 0.3, program.shape) * np.where(np.arange(7) % 5 == 0, 5.0, 1.0)  # off by mm
+    targets.append([1e5, 0.0, 0.0])  # 100 m away: reported, not a failed batch
+    seeds = np.vstack([seeds, program[:1]])
+    r = server.client.post(f"/calibrations/{cal}/compensate",
+                           json={"targets": targets, "seed_joints": seeds.tolist(), "locked_joints": ["J6"]})
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["reachable"][:-1] == [True] * 20 and out["reachable"][-1] is False and out["reason"][-1]
+    assert max(out["residual_mm"][:-1]) < 1e-2
+    joints = np.array(out["joints"])
+    assert np.all(joints >= lo - 1e-9) and np.all(joints <= hi + 1e-9)
+    assert np.allclose(joints[:-1, 5], seeds[:-1, 5])  # the telescopic joint stays where the program had it
+    again = server.client.post(f"/calibrations/{cal}/predict", json={"joints": joints[:-1].tolist()}).json()
+    assert np.abs(np.array(again["positions"]) - np.array(targets[:-1])).max() < 1e-2
+    # a program as joints only: the answer reaches where the nominal model said
+    r = server.client.post(f"/calibrations/{cal}/compensate", json={"program_joints": program[:5].tolist()})
+    assert r.status_code == 200 and all(r.json()["reachable"]), r.text
+    body = assert_problem(server.client.post(f"/calibrations/{cal}/compensate",
+                                             json={"targets": [[0, 0, 0]], "seed_joints": [[0] * 6]}), 422)
+    assert body["errors"][0]["field"] == "body.seed_joints[0]"
+    assert_problem(server.client.post(f"/calibrations/{cal}/compensate", json={"targets": [[0, 0, 0]]}), 422)
 
 
 @pytest.mark.parametrize("path", ["/robots/nope", "/measurements/nope", "/jobs/nope", "/calibrations/nope",
