@@ -151,3 +151,11 @@ def install(app: FastAPI) -> None:
     async def _unexpected(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
         return problem_response(request, 500, "internal error; it was logged", kind="internal")
+
+
+def get_or_404(s, model_cls, key: str, what: str):
+    """The row of model_cls with primary key `key`, or a 404 problem naming `what`."""
+    row = s.get(model_cls, key)
+    if row is None:
+        raise not_found(what, key)
+    return row

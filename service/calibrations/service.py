@@ -12,7 +12,7 @@ from calib_core.identify import CalibratedRobot
 from calib_core.io import Measurements
 from calib_core.model import LENGTH_TO_MM
 
-from ..problems import ProblemError, not_found
+from ..problems import ProblemError, get_or_404
 from ..report import decorate
 from ..robots.models import Robot
 from ..robots.schemas import iso
@@ -21,10 +21,7 @@ from .models import Calibration
 
 
 def get_calibration(s: Session, cal_id: str) -> Calibration:
-    c = s.get(Calibration, cal_id)
-    if c is None:
-        raise not_found("calibration", cal_id)
-    return c
+    return get_or_404(s, Calibration, cal_id, "calibration")
 
 
 def answer(c: Calibration) -> dict:

@@ -4,7 +4,7 @@ from __future__ import annotations
 from sqlalchemy.orm import Session
 
 from ..measurements.service import get_measurement_set
-from ..problems import ProblemError, not_found
+from ..problems import ProblemError, get_or_404
 from .models import Job
 
 
@@ -22,7 +22,4 @@ def enqueue(s: Session, measurement_set_id: str, mode: str, max_attempts: int) -
 
 
 def get_job(s: Session, job_id: str) -> Job:
-    j = s.get(Job, job_id)
-    if j is None:
-        raise not_found("job", job_id)
-    return j
+    return get_or_404(s, Job, job_id, "job")

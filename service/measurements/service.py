@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session
 from calib_core.io import MeasurementError, Measurements, parse_measurements
 
 from ..db import Database
-from ..problems import ProblemError, not_found
+from ..problems import ProblemError, get_or_404
 from ..robots.service import get_robot, model_of
 from .models import MeasurementSet
 
@@ -49,10 +49,7 @@ def create_measurement_set(db: Database, robot_id: str, raw: bytes, filename: st
 
 
 def get_measurement_set(s: Session, ms_id: str) -> MeasurementSet:
-    m = s.get(MeasurementSet, ms_id)
-    if m is None:
-        raise not_found("measurement set", ms_id)
-    return m
+    return get_or_404(s, MeasurementSet, ms_id, "measurement set")
 
 
 def list_for_robot(s: Session, robot_id: str, limit: int, offset: int) -> list[MeasurementSet]:

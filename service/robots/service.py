@@ -9,7 +9,7 @@ from sqlalchemy.orm import Session
 
 from calib_core.model import ModelError, RobotModel, parse_model
 
-from ..problems import ProblemError, not_found
+from ..problems import ProblemError, get_or_404
 from .models import Robot
 
 
@@ -37,10 +37,7 @@ def create_robot(s: Session, doc: dict) -> Robot:
 
 
 def get_robot(s: Session, robot_id: str) -> Robot:
-    r = s.get(Robot, robot_id)
-    if r is None:
-        raise not_found("robot", robot_id)
-    return r
+    return get_or_404(s, Robot, robot_id, "robot")
 
 
 def list_robots(s: Session, limit: int, offset: int) -> list[Robot]:
