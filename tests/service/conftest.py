@@ -17,6 +17,8 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service.demo import stop_process_group
+
 from calib_core import Twin, parse_model, write_measurements
 from calib_core.robots import spray7
 
@@ -61,15 +63,7 @@ class Proc:
         self._fh.close()
 
     def stop(self) -> None:
-        if self.p.poll() is None:
-            try:
-                os.killpg(self.p.pid, signal.SIGTERM)
-                self.p.wait(15)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.p.pid, signal.SIGKILL)
-                self.p.wait(5)
-            except ProcessLookupError:
-                pass
+        stop_process_group(self.p, 15)
         self._fh.close()
 
     def output(self) -> str:

@@ -163,7 +163,8 @@ def test_compensate_puts_the_model_on_the_targets(server, mset, model_doc):
 @pytest.mark.parametrize("path", ["/robots/nope", "/measurements/nope", "/jobs/nope", "/calibrations/nope",
                                   "/no/such/route"])
 def test_not_found_is_a_problem(server, path):
-    assert_problem(server.client.get(path), 404)
+    body = assert_problem(server.client.get(path), 404)
+    assert body["status"] == 404
 
 
 def test_validation_errors_are_problems(server):
