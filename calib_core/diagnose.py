@@ -1,33 +1,41 @@
 """Find what the geometric model gets wrong, name the cause, extend the model, prove the gain held out.
 
 Greedy and repeated: at the current model (geometry + effects found so far) every candidate cause is
-scored by the linearised F-test of adding its columns to the coupled Jacobian (Bonferroni over the
-candidates) and ranked by BIC; the best significant one whose unexplained size is at least the noise floor is refitted
-jointly with everything else, kept if its k-fold held-out RMS improves, and the search looks again.
+scored by the linearised F-test of adding its columns to the coupled Jacobian (Bonferroni within its
+family: named causes, steps in time order) and ranked by BIC; the best significant one is refitted jointly
+with everything else and kept on evidence, not on its size against one measurement: its k-fold held-out
+error must drop significantly (paired test over poses) and lower the de-noised model error (held-out mean
+square minus the noise variance). Load-driven causes are also tried with the gravity load identified from
+the data, so wrong or missing mass data do not hide them. When the residual left is significantly above
+the floor, the answer says what it follows (time order, a joint, the load, a workspace region): never silent.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from typing import Callable
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 
 from . import kinematics as K
-from .effects import Context, Effect, candidates
+from .effects import Backlash, Context, Effect, JointCompliance, LoadCompliance, SessionStep, candidates
+from .effects.gravity import _as_tuple, gravity_regressor, load_mix_for, payload_load
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
-from .identify import Calibration, identify, tracker_sigma_mm
+from .effects.structure import probes, step_candidates
+from .identify import Calibration, effect_bases, identify, tracker_sigma_mm
 from .io import Measurements
 from .model import RobotModel
 
 ALPHA = 0.01
-"""Family-wise false-alarm rate of one search round (Bonferroni over the candidates)."""
-FLOOR_FACTOR = 1.0
-"""A cause whose unexplained RMS, in the fit and on held-out poses (sqrt of the drop in mean square error),
-is below FLOOR_FACTOR x noise floor is not a finding."""
+"""Family-wise false-alarm rate of one search round (Bonferroni within each family of candidates)."""
+TIME_SHARE = 0.2
+"""Share of ALPHA spent on steps in time order; the rest on the named causes."""
+HOLDOUT_ALPHA = 0.01
+"""A cause is kept only if the per-pose held-out errors drop with this one-sided significance."""
 DEFAULT_REPEATABILITY_MM = 0.02
 """Pose repeatability assumed when the data holds no repeated poses (ISO 9283 RP of an industrial robot)."""
-MIN_EXCESS_FRACTION = 0.2
+MIN_EXCESS_FRACTION = 0.1
 """A named cause must remove at least this fraction of the held-out mean square error above the floor;
 smaller shares are what a wrong cause picks up from a true one outside the vocabulary."""
 NAMED_SHARE = 0.4
@@ -36,39 +44,45 @@ LOOKALIKE = 0.8
 MAX_LOOKALIKES = 4
 INDISTINGUISHABLE = 1.02
 """Rivals explaining at least LOOKALIKE of the winner's share are refitted and judged on held-out poses."""
-MAX_FINDINGS = 5
-UNEXPLAINED_RATIO = 1.25
-"""Held-out RMS above this multiple of the floor after the named causes means structure is left."""
+MAX_FINDINGS = 6
+ABSORBED = 1e-3
+"""A candidate's unit column keeping less than this norm outside the current model's span is absorbed by it."""
 
 
-def noise_floor_mm(meas: Measurements, sigma: np.ndarray, repeatability_mm: float | None = None) -> tuple[float, str]:
-    """RMS 3-D distance a perfect model would leave: tracker sigma plus pose repeatability.
+def noise_floor_mm(meas: Measurements, sigma: np.ndarray, repeatability_mm: float | None = None
+                   ) -> tuple[float, str, str]:
+    """RMS 3-D distance a perfect model would leave: instrument sigma plus the robot's pose repeatability.
 
-    Repeatability comes from repeated poses in the data when there are at least five, else the default."""
+    Repeatability comes from repeated poses when there are at least five: their spread already holds the
+    instrument noise at those poses, which is taken out once (not counted twice). Returns the floor, a
+    sentence on its basis and the basis itself ('given', 'repeats' or 'assumed')."""
     how = "given"
     if repeatability_mm is None:
-        rep = _repeatability_from_repeats(meas)
-        repeatability_mm, how = (rep, "from repeated poses") if rep is not None else (DEFAULT_REPEATABILITY_MM, "assumed")
+        rep = _repeatability_from_repeats(meas, sigma)
+        repeatability_mm, how = (rep, "repeats") if rep is not None else (DEFAULT_REPEATABILITY_MM, "assumed")
     floor = float(np.sqrt(3 * np.mean(sigma**2) + 3 * repeatability_mm**2))
-    return floor, f"tracker sigma {np.sqrt(np.mean(sigma**2)) * 1000:.0f} um per axis, repeatability " \
-                  f"{repeatability_mm * 1000:.0f} um per axis ({how})"
+    said = {"given": "given", "repeats": "from repeated poses", "assumed": "assumed"}[how]
+    return floor, (f"instrument sigma {np.sqrt(np.mean(sigma**2)) * 1000:.0f} um per axis, robot repeatability "
+                   f"{repeatability_mm * 1000:.0f} um per axis ({said})"), how
 
 
-def _repeatability_from_repeats(meas: Measurements) -> float | None:
+def _repeatability_from_repeats(meas: Measurements, sigma: np.ndarray) -> float | None:
+    """Per-axis robot repeatability (mm) from poses measured more than once, instrument noise removed."""
     q = np.round(meas.joints, 6)
     _, inv, counts = np.unique(q, axis=0, return_inverse=True, return_counts=True)
     inv = inv.ravel()
     groups = np.flatnonzero(counts > 1)
     if len(groups) < 5:
         return None
-    dev = []
-    for g in groups:
-        pts = meas.points[inv == g]
-        dev.append(pts - pts.mean(0))
-    dev = np.vstack(dev)
-    dof = sum(counts[g] - 1 for g in groups)
-    var_tracker = 0.0  # the repeat spread already holds the tracker noise: subtract nothing, report total
-    return float(np.sqrt(max((dev**2).sum() / (3 * dof) - var_tracker, 0.0)))
+    in_group = np.isin(inv, groups)
+    means = np.zeros((len(counts), 3))
+    np.add.at(means, inv, meas.points)
+    means /= counts[:, None]
+    dev = (meas.points - means[inv])[in_group]
+    dof = int((counts[groups] - 1).sum())
+    total = (dev**2).sum() / (3 * dof)
+    instrument = float(np.mean(sigma[in_group] ** 2))
+    return float(np.sqrt(max(total - instrument, 0.0)))
 
 
 @dataclass
@@ -94,23 +108,33 @@ class Diagnosis:
     nominal: Calibration  # the nominal model with only the tracker frame and tool registered
     noise_floor_mm: float
     noise_note: str
+    floor_basis: str = "assumed"  # 'given', 'repeats', 'assumed' or 'residual' (re-estimated, no structure)
     findings: list[dict] = field(default_factory=list)
     rejected: list[dict] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     explanation: str = ""
+    loss: str | None = None
+
+    def model_error_mm(self, cal: Calibration) -> float:
+        """De-noised model error: the root of held-out mean square distance minus the floor's (mm)."""
+        return float(np.sqrt(max(np.mean(cal.holdout_residual_mm**2) - self.noise_floor_mm**2, 0.0)))
 
     def to_dict(self) -> dict:
-        g = self.geometric.metrics()
+        g, f = self.geometric.metrics(), self.calibration.metrics()
         return {
             "noise_floor_mm": self.noise_floor_mm,
             "noise_floor_basis": self.noise_note,
+            "noise_floor_source": self.floor_basis,
             "nominal": {k: self.nominal.metrics()[k] for k in ("rms_mm", "max_mm", "holdout_rms_mm", "holdout_max_mm")},
             "geometric": {"rms_mm": g["rms_mm"], "holdout_rms_mm": g["holdout_rms_mm"], "max_mm": g["max_mm"],
-                          "holdout_max_mm": g["holdout_max_mm"]},
+                          "holdout_max_mm": g["holdout_max_mm"], "model_error_mm": self.model_error_mm(self.geometric)},
+            "final": {"holdout_rms_mm": f["holdout_rms_mm"], "holdout_max_mm": f["holdout_max_mm"],
+                      "model_error_mm": self.model_error_mm(self.calibration)},
             "findings": self.findings,
             "not_findings": self.rejected,
             "notes": self.notes,
             "explanation": self.explanation,
+            "robust_loss": self.loss,
             "per_pose": {
                 "point": list(self.calibration.point_ids),
                 "geometric_holdout_mm": self.geometric.holdout_residual_mm.tolist(),
@@ -132,8 +156,9 @@ def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_
         Pq, Pp = effect_bases(model, meas, list(cal.effects), x_ref, cal.R0)
         cols.append(np.einsum("nij,njk->nik", chain.joint_jacobian(), Pq) + Pp)
     J = (np.concatenate(cols, axis=2) / sigma[:, None, None]).reshape(len(r.ravel()), -1)
-    U, s, _ = np.linalg.svd(J, full_matrices=False)
-    Q = U[:, s > s[0] * 1e-10]
+    norms = np.linalg.norm(J, axis=0)
+    U, s, _ = np.linalg.svd(J / np.where(norms > 0, norms, 1.0), full_matrices=False)  # unit-free rank
+    Q = U[:, s > s[0] * 1e-8]
     return r.ravel(), Q, chain
 
 
@@ -164,23 +189,28 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     out = []
     for e in pool:
         Cw, b = _weighted_columns(e, ctx, Jq, sigma)
-        k = Cw.shape[1]
-        Cp = Cw - Q @ (Q.T @ Cw)
-        sv = np.linalg.svd(Cp, compute_uv=False)
-        if sv[0] <= 1e-6 * np.linalg.norm(Cw) or np.any(sv < 1e-6 * sv[0]):
-            continue  # the current model absorbs (part of) it: not testable as a separate cause
-        theta, *_ = np.linalg.lstsq(Cp, r, rcond=None)
-        fit = Cp @ theta
+        norms = np.linalg.norm(Cw, axis=0)
+        if not np.all(norms > 0):
+            continue
+        Cp = Cw / norms - Q @ (Q.T @ (Cw / norms))
+        U, sv, _ = np.linalg.svd(Cp, full_matrices=False)
+        k = int((sv > ABSORBED).sum())  # the directions the current model cannot absorb
+        if k == 0:
+            continue
+        fit = U[:, :k] @ (U[:, :k].T @ r)
         drss = float(fit @ fit)
-        dof2 = m - p - k
-        F = (drss / k) / max((rss - drss) / dof2, 1e-300)
-        log_p = float(stats.f.logsf(F, k, dof2))
+        k_test = k + int(getattr(e, "search_dof", 0))
+        dof2 = m - p - k_test
+        if dof2 <= 0:
+            continue
+        F = (drss / k_test) / max((rss - drss) / dof2, 1e-300)
+        log_p = float(stats.f.logsf(F, k_test, dof2))
         disp = fit.reshape(-1, 3) * sigma[:, None]  # mm
         direction = disp / np.maximum(np.linalg.norm(disp, axis=1, keepdims=True), 1e-300)
         res_mm = r.reshape(-1, 3) * sigma[:, None]
         out.append(Candidate(
             effect=e, label=e.label(model), p_value=float(np.exp(log_p)), log_p=log_p, F=float(F),
-            explained=drss / rss, bic=m * np.log(max(rss - drss, 1e-300) / m) + k * np.log(m),
+            explained=drss / rss, bic=m * np.log(max(rss - drss, 1e-300) / m) + k_test * np.log(m),
             effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
             regressor=b.regressor, regressor_label=b.regressor_label,
             projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
@@ -192,61 +222,150 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss
 
 
-def _best_of_lookalikes(c, trial, ranked, threshold, model, meas, chosen, loss, folds, x_ref, share=None):
+def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
+    """Log Bonferroni threshold per candidate: ALPHA split between the named causes and the time steps."""
+    steps = [e for e in pool if isinstance(e, SessionStep)]
+    named = len(pool) - len(steps)
+    a_named = alpha * (1.0 - TIME_SHARE) if steps else alpha
+    return {id(e): np.log((alpha * TIME_SHARE / len(steps)) if isinstance(e, SessionStep) else a_named / max(named, 1))
+            for e in pool}
+
+
+def holdout_gain(before: Calibration, after: Calibration) -> tuple[float, float]:
+    """One-sided paired test over poses that the k-fold held-out error dropped: (p-value, drop of the mean
+    square held-out distance in mm^2)."""
+    d = before.holdout_residual_mm**2 - after.holdout_residual_mm**2
+    drop = float(d.mean())
+    sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
+    if sd <= 0.0:
+        return (0.0 if drop > 0 else 1.0), drop
+    return float(stats.t.sf(drop / (sd / np.sqrt(len(d))), len(d) - 1)), drop
+
+
+def _best_of_lookalikes(c, trial, ranked, thresholds, model, meas, chosen, loss, folds, x_ref, share=None):
     """Some causes look alike over a limited range (a scale error and a first harmonic, a short link's
     bending and the compliance of the joint before it): among the significant candidates that explain
     nearly as much as the winner, keep the best on held-out poses and name the ones it cannot beat."""
     tried = [(c, trial)]
     share = LOOKALIKE if share is None else share
-    rivals = [a for a in ranked if a is not c and a.log_p <= threshold and a.explained >= share * c.explained]
+    rivals = [a for a in ranked if a is not c and a.log_p <= thresholds.get(id(a.effect), -np.inf)
+              and a.explained >= share * c.explained]
     for alt in rivals[:MAX_LOOKALIKES]:
         tried.append((alt, identify(model, meas, effects=tuple(chosen + [alt.effect]), loss=loss, folds=folds,
                                     x_ref=x_ref)))
     tried.sort(key=lambda t: t[1].metrics()["holdout_rms_mm"])
+    best_fit = tried[0][1]
+    # parsimony: the simplest form that held-out poses cannot show to be worse than the best one
+    by_size = sorted(tried, key=lambda t: (len(t[0].effect.parameter_names(model)), t[1].metrics()["holdout_rms_mm"]))
+    pick = next(t for t in by_size if t is tried[0] or holdout_gain(t[1], best_fit)[0] > 0.05)
+    tried.remove(pick)
+    tried.insert(0, pick)
     best = tried[0][1].metrics()["holdout_rms_mm"]
     alike = [{"kind": a.effect.kind, "joints": [model.joint_names[j] for j in a.effect.joints],
               "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
-             for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best]
+             for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best
+             and (a.effect.kind, a.effect.joints) != (tried[0][0].effect.kind, tried[0][0].effect.joints)]
     return tried[0][0], tried[0][1], alike
+
+
+def _refinements(e: Effect, load_pool: dict[int, LoadCompliance]) -> list[Effect]:
+    """Richer forms of an accepted cause, kept only if held-out poses prefer them: a stiffening spring, the
+    load identified from the data instead of the mass data."""
+    out: list[Effect] = []
+    if isinstance(e, JointCompliance) and len(e.joints) == 1 and not e.cubic:
+        out.append(JointCompliance(e.joints, cubic=True))
+    if isinstance(e, (JointCompliance, Backlash)) and len(e.joints) == 1 and e.joints[0] in load_pool \
+            and not getattr(e, "load_coef", ()):
+        if isinstance(e, JointCompliance):
+            out.append(load_pool[e.joints[0]])
+    return out
+
+
+def _refine(c, trial, chosen, load_pool, model, meas, loss, folds, x_ref):
+    """Swap the accepted cause for a richer form of it when held-out poses say so (paired test)."""
+    for alt in _refinements(c.effect, load_pool):
+        try:
+            t = identify(model, meas, effects=tuple(chosen + [alt]), loss=loss, folds=folds, x_ref=x_ref)
+        except ValueError:
+            continue
+        p, drop = holdout_gain(trial, t)
+        if p < HOLDOUT_ALPHA and drop > 0:
+            c = Candidate(**{**c.__dict__, "effect": alt, "label": alt.label(model)})
+            trial = t
+    return c, trial
 
 
 def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, loss, folds, floor):
     """Greedy order can mislead when causes overlap: test each finding again against its look-alikes with
     every other finding in the model; swap it for a better one, or name the ones it cannot beat."""
-    for k in range(len(chosen)):
+    k = 0
+    while k < len(chosen):
         others = chosen[:k] + chosen[k + 1:]
         base = identify(model, meas, effects=tuple(others), loss=loss, folds=folds, x_ref=current.x)
-        ranked, _ = screen(base, meas, sigma, [e for e in pool if e not in others], current.x, alpha)
-        mine = next((c for c in ranked if c.effect == chosen[k]), None)
+        if holdout_gain(base, current)[0] > HOLDOUT_ALPHA:  # the others explain what it did: it goes
+            del chosen[k], findings[k]
+            current = base
+            continue
+        k += 1
+        rest = [e for e in pool if e not in others]
+        if chosen[k - 1] not in rest:
+            rest.append(chosen[k - 1])
+        ranked, _ = screen(base, meas, sigma, rest, current.x, alpha)
+        mine = next((c for c in ranked if c.effect == chosen[k - 1]), None)
         if mine is None:
             continue
-        threshold = np.log(alpha / max(len(pool), 1))
-        c, trial, alike = _best_of_lookalikes(mine, current, ranked, threshold, model, meas, others, loss, folds,
+        thresholds = _thresholds(rest, alpha)
+        c, trial, alike = _best_of_lookalikes(mine, current, ranked, thresholds, model, meas, others, loss, folds,
                                               current.x, share=0.5)
         if c is not mine:
-            chosen[k] = c.effect
+            chosen[k - 1] = c.effect
             current = identify(model, meas, effects=tuple(chosen), loss=loss, folds=folds, x_ref=current.x)
-        findings[k] = _finding(c, model, base, current, floor, alike)
+        findings[k - 1] = _finding(c, model, base, current, floor, alike, meas)
     return current
 
 
+def _when(e: Effect, meas: Measurements) -> str:
+    """Where a step sits in the session, for people: the time and the poses on either side."""
+    if not isinstance(e, SessionStep):
+        return ""
+    if e.source == "time":
+        order = np.argsort(meas.timestamp)
+        t = np.asarray(meas.timestamp)[order]
+        k = int(np.searchsorted(t, e.at))
+        stamp = datetime.fromtimestamp(e.at, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    else:
+        order, k, stamp = np.arange(meas.n_poses), int(e.at), f"row {int(e.at) + 1}"
+    ids = meas.point_ids or [str(i + 1) for i in range(meas.n_poses)]
+    before, after = ids[order[max(k - 1, 0)]], ids[order[min(k, len(order) - 1)]]
+    return f"in time order between {before} and {after} ({stamp})"
+
+
 def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibration, floor: float,
-             alike: list[dict]) -> dict:
+             alike: list[dict], meas: Measurements | None = None) -> dict:
     hb, ha = before.metrics()["holdout_rms_mm"], after.metrics()["holdout_rms_mm"]
     e = c.effect
-    params = [p for p in after.parameters() if p.get("effect") == e.kind
-              and p["name"] in e.parameter_names(model)]
+    names = set(e.parameter_names(model))
+    params = [p for p in after.parameters() if "effect" in p and p["name"] in names]
     shown = ", ".join(f"{p['name']} = {p['value']:.4g} +/- {p['std']:.2g} {p['unit']}" for p in params[:4])
-    evidence = (f"{e.explain(model)}: it explains {100 * c.explained:.0f} % of the remaining residual "
-                f"(R = {np.sqrt(c.explained):.2f}, F = {c.F:.1f}, p = {c.p_value:.1e}); its unexplained size is "
-                f"{c.effect_rms_mm:.3f} mm RMS against a noise floor of {floor:.3f} mm; {shown}")
+    when = _when(e, meas) if meas is not None else ""
+    p_gain, _ = holdout_gain(before, after)
+    mb = float(np.sqrt(max(np.mean(before.holdout_residual_mm**2) - floor**2, 0.0)))
+    ma = float(np.sqrt(max(np.mean(after.holdout_residual_mm**2) - floor**2, 0.0)))
+    evidence = (f"{e.explain(model)}{' ' + when if when else ''}: it explains {100 * c.explained:.0f} % of the "
+                f"remaining residual (F = {c.F:.1f}, p = {c.p_value:.1e}); on held-out poses the error drops "
+                f"{hb:.3f} -> {ha:.3f} mm (paired p = {p_gain:.1e}) and the model error beyond the noise floor "
+                f"({floor:.3f} mm) {mb:.3f} -> {ma:.3f} mm; {shown}")
     out = {"kind": e.kind, "joints": [model.joint_names[j] for j in e.joints],
            "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha, "gain_pct": 100.0 * (hb - ha) / hb,
+           "model_error_before_mm": mb, "model_error_after_mm": ma, "holdout_p_value": p_gain,
            "evidence": evidence, "effect_rms_mm": c.effect_rms_mm, "p_value": c.p_value, "parameters": params,
+           "form": e.label(model),
            "plot": {"x": c.regressor.tolist(), "x_label": c.regressor_label,
                     "residual_mm": c.projected_residual_mm.tolist(), "fit_mm": c.fitted_mm.tolist()}}
     if e.harmonic is not None:
         out["harmonic"] = e.harmonic
+    if isinstance(e, SessionStep):
+        out["follows"] = [{"what": "time order", "detail": when, "p_value": c.p_value}]
     if alike:
         out["indistinguishable_from"] = alike
         out["evidence"] += ("; on this pose set it cannot be told apart from " +
@@ -255,110 +374,282 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     return out
 
 
+def _load_pool(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> dict[int, LoadCompliance]:
+    """Per joint, the compliance under a gravity load identified from the data (see effects/gravity.py)."""
+    model = cal.model
+    _, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
+    ref = K.Chain(model, x_ref, meas.joints, cal.R0)
+    Jq = chain.joint_jacobian()
+    payload = meas.payload is not None and np.ptp(meas.payload) > 0
+    out = {}
+    for j in range(model.n_joints):
+        M = load_mix_for(ref, j, Q, Jq, sigma)
+        if M is not None:
+            out[j] = LoadCompliance((j,), load_mix=(_as_tuple(M),), payload=payload)
+    return out
+
+
+def _distributed(load_pool: dict[int, LoadCompliance]) -> list[Effect]:
+    """Compliance of every loaded joint at once, load identified: elasticity spread over the whole arm."""
+    if len(load_pool) < 2:
+        return []
+    js = sorted(load_pool)
+    return [LoadCompliance(tuple(js), load_mix=tuple(load_pool[j].load_mix[0] for j in js),
+                           payload=load_pool[js[0]].payload)]
+
+
+def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray,
+                         joints: list[int]) -> list[Backlash]:
+    """Backlash whose switch follows the load identified from the data: per joint, a linear classifier of the
+    sign of the residual along that joint's motion on the gravity regressor (started from the model's
+    statics where there are masses). Its search is paid for in the F-test (`search_dof`)."""
+    model = cal.model
+    r, _, chain = _weighted_system(cal, meas, sigma, x_ref)
+    R = r.reshape(-1, 3) * sigma[:, None]
+    Jq = chain.joint_jacobian()
+    ref = K.Chain(model, x_ref, meas.joints, cal.R0)
+    nominal = None
+    if model.has_mass:
+        from .statics import joint_loads
+
+        nominal = joint_loads(ref, meas.payload_kg())
+    out = []
+    for j in joints:
+        F = np.column_stack([gravity_regressor(ref, j), payload_load(ref, meas.payload_kg(), j)])
+        scale = np.linalg.norm(F, axis=0)
+        keep = scale > 1e-9 * max(scale.max(), 1e-300)
+        if not keep.any():
+            continue
+        U, s, Vt = np.linalg.svd(F[:, keep] / scale[keep], full_matrices=False)
+        rank = int((s > 1e-6 * s[0]).sum())
+        root_n = np.sqrt(len(U))
+        Z = U[:, :rank] * root_n  # unit-RMS features
+        col = Jq[:, :, j]
+        w = (col**2).sum(1)
+        e = (col * R).sum(1) / np.maximum(w, 1e-300)  # the residual as an offset of joint j, per pose
+        y = np.sign(e)
+        weight = np.abs(e) * w / sigma**2
+        weight = weight / max(weight.sum(), 1e-300)
+        start = nominal[:, j] if nominal is not None else e
+        beta0 = np.linalg.lstsq(Z, start / max(np.std(start), 1e-300), rcond=None)[0]
+
+        def loss_grad(b):
+            z = y * (Z @ b)
+            loss = (weight * np.logaddexp(0.0, -z)).sum() + 1e-3 * b @ b
+            g = -(Z.T @ (weight * y * stats.logistic.cdf(-z))) + 2e-3 * b
+            return loss, g
+
+        beta = optimize.minimize(loss_grad, beta0, jac=True, method="L-BFGS-B").x
+        coef = np.zeros(F.shape[1])
+        coef[keep] = root_n * (Vt[:rank].T / s[:rank]) @ beta / scale[keep]
+        load = F @ coef
+        if not np.any(load > 0) or not np.any(load < 0):
+            continue
+        big = float(np.abs(load).max())
+        coef = coef / big  # the load in units of its largest value: the switch needs only its sign
+        out.append(Backlash((j,), transition=Backlash.TRANSITION_SHARE, load_coef=tuple(float(v) for v in coef),
+                            search_dof=rank))
+    return out
+
+
+def _excess(cal: Calibration, floor: float) -> float:
+    """p-value that the held-out residual is no larger than the noise floor (chi-square on 3N)."""
+    h = cal.holdout_residual_mm
+    N = len(h)
+    p = len(cal.solution.x)
+    inflate = 1.0 + p / max(N - p / 3.0, 1.0)  # held-out poses carry the fitted parameters' error too
+    T = float((h**2).sum() / (floor**2 / 3.0) / inflate)
+    return float(stats.chi2.sf(T, 3 * N))
+
+
+def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray, alpha: float,
+             load_pool: dict[int, LoadCompliance]) -> list[dict]:
+    """What the residual left follows: time order (a step or a drift), one joint, the load, a workspace
+    region; each a family tested with the same F-test (Bonferroni over the families)."""
+    model = cal.model
+    fams = probes(model, meas)
+    fams += _distributed(load_pool) if load_pool else []
+    if model.has_mass:
+        loaded = [j for j in range(model.n_joints) if j in load_pool] or list(range(model.n_joints))
+        fams.append(JointCompliance(tuple(loaded)))
+    steps = step_candidates(meas, [])
+    ranked, _ = screen(cal, meas, sigma, fams + steps, x_ref, alpha)
+    n_tests = len(fams) + 1
+    out, seen_step = [], False
+    for c in ranked:
+        is_step = isinstance(c.effect, SessionStep)
+        limit = np.log(alpha / n_tests / (len(steps) if is_step else 1))
+        if c.log_p > limit or (is_step and seen_step):
+            continue
+        seen_step |= is_step
+        if is_step:
+            what = "time order: a step " + _when(c.effect, meas)
+        elif isinstance(c.effect, (LoadCompliance, JointCompliance)):
+            what = "the gravity load on the joints"
+        else:
+            what = c.effect.describe(model)
+        out.append({"what": what, "p_value": c.p_value, "share_pct": 100.0 * c.explained, "effect": c.effect})
+    return out
+
+
 def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, repeatability_mm: float | None = None,
-             loss: str | None = None, folds: int = 5, unexplained: bool = True,
+             loss: str | None = "auto", folds: int = 5, unexplained: bool = True,
              progress: Callable[[float, str], None] | None = None) -> Diagnosis:
-    """Geometric fit, then the greedy search for causes; returns the extended calibration and the findings."""
+    """Geometric fit, then the greedy search for causes; returns the extended calibration and the findings.
+
+    loss 'auto' fits with the Huber loss when a first robust fit names outliers (they are listed), else
+    with plain least squares."""
     report = progress or (lambda f, msg: None)
     sigma = meas.sigma if meas.sigma is not None else tracker_sigma_mm(meas.points)
     report(0.05, "identifying the geometric model")
+    notes: list[str] = []
+    if loss == "auto":
+        first = identify(model, meas, loss="huber", folds=0)
+        loss = "huber" if len(first.solution.outliers) else None
+        if loss:
+            ids = [meas.point_ids[i] if meas.point_ids else str(i + 1) for i in first.solution.outliers]
+            notes.append(f"{len(ids)} pose(s) disagree with the rest by far more than the noise and were "
+                         f"down-weighted as outliers (Huber loss): {', '.join(ids[:20])}"
+                         f"{' ...' if len(ids) > 20 else ''}")
     geo = identify(model, meas, loss=loss, folds=folds)
-    floor, note = noise_floor_mm(meas, sigma, repeatability_mm)
+    floor, note, basis = noise_floor_mm(meas, sigma, repeatability_mm)
     sigma = geo.sigma_mm  # screen with the weights of the fit: noise plus what the geometry leaves
-    pool, notes = candidates(model, meas)
+    named, more = candidates(model, meas)
+    notes += more
     x_ref = geo.x
+    load_pool = _load_pool(geo, meas, sigma, x_ref)
+    named += list(load_pool.values()) + _distributed(load_pool)
+    moving = [j for j in range(model.n_joints) if np.ptp(meas.joints[:, j]) > 1e-3]
+    steps = step_candidates(meas, moving)
+    loaded = sorted(load_pool)
     current, chosen = geo, []
     findings, rejected = [], []
     for round_ in range(MAX_FINDINGS):
-        report(0.1 + 0.7 * round_ / MAX_FINDINGS, f"testing {len(pool)} candidate causes")
+        report(0.1 + 0.6 * round_ / MAX_FINDINGS, f"testing {len(named) + len(steps)} candidate causes")
+        pool = [e for e in named + steps if e not in chosen]
+        pool += _identified_backlash(current, meas, sigma, x_ref, [j for j in loaded if not any(
+            isinstance(e, Backlash) and e.joints == (j,) for e in chosen)])
+        thresholds = _thresholds(pool, alpha)
         ranked, field_share = screen(current, meas, sigma, pool, x_ref, alpha)
-        threshold = np.log(alpha / max(len(pool), 1))
         accepted = False
         for c in ranked:
-            if c.log_p > threshold:
+            if c.log_p > thresholds[id(c.effect)]:
                 continue
-            if c.effect_rms_mm < FLOOR_FACTOR * floor:
-                rejected.append({"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
-                                 "why": f"significant (p = {c.p_value:.1e}) but {c.effect_rms_mm:.3f} mm RMS is "
-                                        f"below the noise floor {floor:.3f} mm"})
+            who = {"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
+                   "form": c.label}
+            if c.explained < NAMED_SHARE * field_share and not isinstance(c.effect, SessionStep):
+                rejected.append({**who, "why": f"explains {100 * c.explained:.0f} % of the residual where a smooth "
+                                               f"field explains {100 * field_share:.0f} %: part of a broader structure"})
                 continue
-            if c.explained < NAMED_SHARE * field_share:
-                rejected.append({"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
-                                 "why": f"explains {100 * c.explained:.0f} % of the residual where a smooth field "
-                                        f"explains {100 * field_share:.0f} %: part of a broader structure"})
+            try:
+                trial = identify(model, meas, effects=tuple(chosen + [c.effect]), loss=loss, folds=folds, x_ref=x_ref)
+            except ValueError as exc:
+                rejected.append({**who, "why": str(exc)})
                 continue
-            trial = identify(model, meas, effects=tuple(chosen + [c.effect]), loss=loss, folds=folds, x_ref=x_ref)
-            hb, ha = current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
-            drop = hb**2 - ha**2
-            if drop < (FLOOR_FACTOR * floor) ** 2 or drop < MIN_EXCESS_FRACTION * (hb**2 - floor**2):
-                rejected.append({"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
-                                 "why": f"significant in the fit, but on held-out poses it removes too little "
-                                        f"({hb:.3f} -> {ha:.3f} mm, noise floor {floor:.3f} mm)"})
+            p_gain, drop = holdout_gain(current, trial)
+            excess = np.mean(current.holdout_residual_mm**2) - floor**2
+            if p_gain > HOLDOUT_ALPHA or drop < MIN_EXCESS_FRACTION * max(excess, 0.0):
+                hb, ha = current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
+                rejected.append({**who, "why": f"significant in the fit (p = {c.p_value:.1e}), but held-out poses "
+                                               f"do not confirm it ({hb:.3f} -> {ha:.3f} mm, paired p = {p_gain:.1e})"})
                 continue
-            c, trial, alike = _best_of_lookalikes(c, trial, ranked, threshold, model, meas, chosen, loss, folds,
+            c, trial, alike = _best_of_lookalikes(c, trial, ranked, thresholds, model, meas, chosen, loss, folds,
                                                   x_ref)
-            findings.append(_finding(c, model, current, trial, floor, alike))
+            c, trial = _refine(c, trial, chosen, load_pool, model, meas, loss, folds, x_ref)
+            findings.append(_finding(c, model, current, trial, floor, alike, meas))
             chosen.append(c.effect)
-            pool = [e for e in pool if e != c.effect]
             current, accepted = trial, True
             x_ref = trial.x  # later bases (loads, frames) on the better geometry
             break
         if not accepted:
             break
     for _ in range(3 if len(chosen) > 1 else 0):
-        report(0.8, "revisiting each finding with the others in the model")
+        report(0.75, "revisiting each finding with the others in the model")
         before = list(chosen)
-        current = _revisit(findings, chosen, current, candidates(model, meas)[0], model, meas, sigma, alpha,
-                           loss, folds, floor)
+        current = _revisit(findings, chosen, current, named + steps, model, meas, sigma, alpha, loss, folds, floor)
         if chosen == before:
             break
-    if unexplained and current.metrics()["holdout_rms_mm"] > UNEXPLAINED_RATIO * floor:
-        report(0.85, "looking for structure no named cause explains")
-        field_effect = fit_residual_field(model, meas, current, chosen, x_ref, loss=loss, folds=folds)
-        if field_effect is not None:
-            trial, rf = field_effect
-            if trial.metrics()["holdout_rms_mm"] < 0.9 * current.metrics()["holdout_rms_mm"]:
-                findings.append(_unexplained_finding(model, current, trial, rf, floor))
-                current = trial
     if chosen:  # one last joint fit with every basis on the final geometry
         current = identify(model, meas, effects=current.effects, loss=loss, folds=folds, x_ref=current.x)
+    if unexplained and _excess(current, floor) < alpha:
+        report(0.85, "looking at what the residual left follows")
+        follows = _follows(current, meas, sigma, x_ref, alpha, load_pool)
+        if follows or basis != "assumed":
+            trial = None
+            fitted = fit_residual_field(model, meas, current, chosen, x_ref, loss=loss, folds=folds)
+            if fitted is not None:
+                t, rf = fitted
+                p_gain, drop = holdout_gain(current, t)
+                if p_gain < HOLDOUT_ALPHA and drop > 0:
+                    trial = (t, rf)
+            findings.append(_unexplained_finding(model, current, trial, floor, follows))
+            if trial is not None:
+                current = trial[0]
+        else:
+            new_floor = float(current.metrics()["holdout_rms_mm"])
+            notes.append(f"the residual ({new_floor:.3f} mm RMS held out) is above the assumed noise floor "
+                         f"({floor:.3f} mm) but follows nothing: not time order, no joint, not the load, no region "
+                         f"of the workspace; it looks like noise, so the robot's repeatability (or the instrument's "
+                         f"noise) is probably worse than assumed. Measure some poses twice to know the floor.")
+            note = f"estimated from the structure-free held-out residual (assumed floor was {floor:.3f} mm)"
+            floor, basis = new_floor, "residual"
     nominal = identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
-    d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note, findings=findings,
-                  rejected=rejected, notes=notes)
+    d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,
+                  floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss)
     d.explanation = explain(d, model)
     report(1.0, "diagnosis done")
     return d
 
 
-def _unexplained_finding(model, before, after, rf: ResidualField, floor) -> dict:
-    hb, ha = before.metrics()["holdout_rms_mm"], after.metrics()["holdout_rms_mm"]
+def _unexplained_finding(model, before, trial, floor, follows) -> dict:
+    """The `unexplained` entry: how far above the floor, what the residual follows, what a smooth field gains."""
+    hb = before.metrics()["holdout_rms_mm"]
+    ha = trial[0].metrics()["holdout_rms_mm"] if trial else hb
+    mb = float(np.sqrt(max(np.mean(before.holdout_residual_mm**2) - floor**2, 0.0)))
+    ma = float(np.sqrt(max(np.mean(trial[0].holdout_residual_mm**2) - floor**2, 0.0))) if trial else mb
+    if follows:
+        what = "it follows " + "; ".join(f"{f['what']} (explains {f['share_pct']:.0f} %, p = {f['p_value']:.1e})"
+                                         for f in follows[:3])
+    else:
+        what = ("it follows nothing we can test (not time order, no joint, not the load, no workspace region) while "
+                "repeated poses agree with each other: look at the measurement setup (instrument, target seating, "
+                "the frame between sessions)")
+    fix = (f"a smooth joint-space correction field ({trial[1].describe()}) fitted with the geometry brings it to "
+           f"{ha:.3f} mm" if trial else "no smooth correction helps on held-out poses, so the model is not extended")
     return {"kind": "unexplained", "joints": [], "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
-            "gain_pct": 100.0 * (hb - ha) / hb,
-            "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still "
-                         f"{hb / floor:.1f}x the noise floor ({floor:.3f} mm) and no named cause explains it; "
-                         f"a smooth joint-space correction field ({rf.describe()}) fitted jointly with the "
-                         f"geometry brings it to {ha:.3f} mm"),
+            "gain_pct": 100.0 * (hb - ha) / hb, "model_error_before_mm": mb, "model_error_after_mm": ma,
+            "follows": [{k: v for k, v in f.items() if k != "effect"} for f in follows],
+            "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still {hb / floor:.1f}x the "
+                         f"noise floor ({floor:.3f} mm) and no named cause explains it; {what}; {fix}"),
             "parameters": []}
 
 
 def explain(d: Diagnosis, model: RobotModel) -> str:
-    """One paragraph a process engineer can read."""
+    """One paragraph a process engineer can read; it says what the JSON says."""
     g = d.geometric.metrics()
     head = (f"After the geometric calibration the robot's held-out error is {g['holdout_rms_mm']:.3f} mm RMS "
             f"against a noise floor of {d.noise_floor_mm:.3f} mm (what a perfect model would leave: {d.noise_note}).")
+    ident = d.geometric.identifiability
+    gaps = list(getattr(ident, "unidentifiable", []) or [])
+    caveat = (f" This pose set cannot identify {len(gaps)} parameter(s) ({', '.join(gaps[:6])}"
+              f"{', ...' if len(gaps) > 6 else ''}): the model is valid only near the measured poses."
+              if gaps else "")
+    tail = (" " + " ".join(d.notes)) if d.notes else ""
     if not d.findings:
-        ratio = g["holdout_rms_mm"] / d.noise_floor_mm
-        tail = (" No cause was found: the residual is at the noise floor, so the geometric model is complete."
-                if ratio < UNEXPLAINED_RATIO else
-                f" It is {ratio:.1f}x the floor, but no cause could be named and no smooth correction helped on "
-                "held-out poses; look at the measurement setup (tracker, SMR seating) before the robot.")
-        return head + tail
+        if d.floor_basis == "residual":
+            return head + " No cause was found and the residual follows nothing." + caveat + tail
+        complete = "" if gaps else ", so the geometric model is complete"
+        return head + f" No cause was found: the residual is at the noise floor{complete}." + caveat + tail
     parts = []
     for f in d.findings:
         who = f" on {', '.join(f['joints'])}" if f["joints"] else ""
         parts.append(f"{f['kind'].replace('_', ' ')}{who} (held-out {f['holdout_rms_before_mm']:.3f} -> "
                      f"{f['holdout_rms_after_mm']:.3f} mm, {f['gain_pct']:.0f} % better)")
     final = d.calibration.metrics()["holdout_rms_mm"]
+    left = ""
+    if any(f["kind"] == "unexplained" for f in d.findings):
+        left = " Structure no named cause explains is left: see the unexplained finding for what it follows."
     return (head + " The residual still had structure. Found, in order: " + "; ".join(parts) +
             f". With these in the model the held-out error is {final:.3f} mm, "
-            f"{final / d.noise_floor_mm:.2f}x the noise floor." + (" " + " ".join(d.notes) if d.notes else ""))
+            f"{final / d.noise_floor_mm:.2f}x the noise floor, a model error of {d.model_error_mm(d.calibration):.3f} mm "
+            "beyond it." + left + caveat + tail)

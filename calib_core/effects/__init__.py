@@ -11,11 +11,17 @@ from ..statics import joint_loads
 from ..model import RobotModel
 from .base import Basis, Context, Effect, apply
 from .cartesian_effects import AxisStraightness, LinkDeflection, ThermalDrift
+from .gravity import LoadCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale
 from .residual import ResidualField
+from .structure import Probe, SessionStep
 
-KINDS = {c.kind: c for c in (JointCompliance, LinkDeflection, CyclicJointError, Backlash, JointScale,
-                             AxisStraightness, ThermalDrift, ResidualField)}
+CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointError, Backlash, JointScale,
+                                   AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, SessionStep, Probe)}
+KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
+         "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
+         "thermal_drift": ThermalDrift, "unexplained": ResidualField}
+"""Kind -> class for states stored before the class name was (the contract's kinds are not unique per class)."""
 HARMONICS = (1, 2, 3)
 
 
@@ -31,11 +37,14 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
         span = np.ptp(load, axis=0)
         loaded = [j for j in range(n) if span[j] > 1e-6 * max(span.max(), 1e-300)]
         out += [JointCompliance((j,)) for j in loaded]
+        if len(loaded) > 1:
+            out.append(JointCompliance(tuple(loaded)))
         big = np.abs(load).max(axis=0)
         out += [Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * big[j])) for j in loaded]
         out += [LinkDeflection((k,)) for k in range(1, n)]
     else:
-        notes.append("the model has no masses: joint_compliance, backlash and link_deflection cannot be tested")
+        notes.append("the model has no masses: gravity loads are identified from the data (joint_compliance, "
+                     "backlash); link_deflection needs mass data and is not tested")
     out += [CyclicJointError((j,), h) for j in moving if not model.prismatic[j] for h in HARMONICS]
     out += [JointScale((j,)) for j in moving]
     out += [AxisStraightness((j,)) for j in moving if model.prismatic[j]]
@@ -50,16 +59,21 @@ def effect_state(effect: Effect, values: np.ndarray) -> dict:
     """JSON-able form of an identified effect."""
     d = dataclasses.asdict(effect)
     d["joints"] = list(d["joints"])
-    return {"kind": effect.kind, **d, "values": [float(v) for v in values]}
+    return {"kind": effect.kind, "class": type(effect).__name__, **d, "values": [float(v) for v in values]}
+
+
+def _frozen(v):
+    """JSON lists back to the tuples a frozen effect holds."""
+    return tuple(_frozen(x) for x in v) if isinstance(v, (list, tuple)) else v
 
 
 def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
     d = dict(state)
-    cls = KINDS[d.pop("kind")]
+    kind = d.pop("kind")
+    cls = CLASSES[d.pop("class")] if "class" in d else KINDS[kind]
     values = np.array(d.pop("values"), float)
-    d["joints"] = tuple(d["joints"])
-    return cls(**d), values
+    return cls(**{k: _frozen(v) for k, v in d.items()}), values
 
 
-__all__ = ["effect_state", "effect_from_state", "KINDS", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
+__all__ = ["effect_state", "effect_from_state", "CLASSES", "KINDS", "LoadCompliance", "Probe", "SessionStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
            "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "ThermalDrift"]

@@ -88,12 +88,14 @@ class ThermalDrift(Effect):
     needs = "time"
     source: str = "temperature"  # or "time"
     ref: float = 0.0  # the calibration's mean temperature (deg C) or time (s since the epoch)
+    lo: float = -np.inf
+    hi: float = np.inf
+    """The session's range of the driver: a drift is never extrapolated beyond what it was fitted on."""
 
     @classmethod
     def for_data(cls, meas) -> "ThermalDrift":
-        if meas.temperature is not None:
-            return cls((), source="temperature", ref=float(meas.temperature.mean()))
-        return cls((), source="time", ref=float(meas.timestamp.mean()))
+        col, source = (meas.temperature, "temperature") if meas.temperature is not None else (meas.timestamp, "time")
+        return cls((), source=source, ref=float(col.mean()), lo=float(col.min()), hi=float(col.max()))
 
     def parameter_names(self, model):
         return ["thermal.drift_x", "thermal.drift_y", "thermal.drift_z", "thermal.expansion"]
@@ -107,6 +109,7 @@ class ThermalDrift(Effect):
         col = meas.temperature if self.source == "temperature" else meas.timestamp
         if col is None:
             return np.zeros(meas.n_poses), "none"
+        col = np.clip(col, self.lo, self.hi)
         if self.source == "temperature":
             return col - self.ref, "temperature above calibration mean (deg C)"
         return (col - self.ref) / 3600.0, "time from calibration mean (h)"

@@ -19,37 +19,65 @@ def _load_unit(model: RobotModel, j: int) -> str:
 
 @dataclass(frozen=True)
 class JointCompliance(Effect):
-    """dq_j = c * load_j: the joint (gear, motor, structure) deflects in proportion to its gravity load."""
+    """dq_j = c_j * load_j (+ c3_j * load_j^3 for a stiffening spring, `cubic`): each joint (gear, motor,
+    structure) deflects with its gravity and payload load from the model's mass data; one joint or several."""
 
     kind = "joint_compliance"
     needs = "mass"
+    cubic: bool = False
 
     def parameter_names(self, model):
-        return [f"{model.joint_names[self.joints[0]]}.compliance"]
+        out = []
+        for j in self.joints:
+            out.append(f"{model.joint_names[j]}.compliance")
+            if self.cubic:
+                out.append(f"{model.joint_names[j]}.compliance_cubic")
+        return out
 
     def parameter_units(self, model):
-        j = self.joints[0]
-        return [f"{_offset_unit(model, j)}/{_load_unit(model, j)}"]
+        out = []
+        for j in self.joints:
+            off, load = _offset_unit(model, j), _load_unit(model, j)
+            out.append(f"{off}/{load}")
+            if self.cubic:
+                out.append(f"{off}/{load}^3")
+        return out
 
     def basis(self, ctx: Context) -> Basis:
-        j = self.joints[0]
-        load = ctx.loads[:, j]
         N, n = ctx.meas.joints.shape
-        return Basis(joint_basis(N, n, j, load[:, None]), None, load,
-                     f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
+        per = 2 if self.cubic else 1
+        b = np.zeros((N, n, per * len(self.joints)))
+        for i, j in enumerate(self.joints):
+            load = ctx.loads[:, j]
+            b[:, j, per * i] = load
+            if self.cubic:
+                b[:, j, per * i + 1] = load**3
+        j = self.joints[0]
+        return Basis(b, None, ctx.loads[:, j], f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
+
+    def label(self, model):
+        return super().label(model) + (" stiffening" if self.cubic else "")
 
     def explain(self, model):
-        return f"{model.joint_names[self.joints[0]]} deflects in proportion to its gravity and payload load"
+        who = ", ".join(model.joint_names[j] for j in self.joints)
+        form = "a spring that stiffens with load" if self.cubic else "in proportion to"
+        if self.cubic:
+            return f"{who} deflect{'s' if len(self.joints) == 1 else ''} under gravity and payload load, as {form}"
+        return f"{who} deflect{'s' if len(self.joints) == 1 else ''} {form} {'its' if len(self.joints) == 1 else 'their'} gravity and payload load"
 
 
 @dataclass(frozen=True)
 class Backlash(Effect):
     """dq_j = b/2 * tanh(load_j / transition): the joint sits on one flank of its gear play or the other;
-    near zero load it floats in the play (transition in N*m or N; 0 = a sharp switch)."""
+    near zero load it floats in the play (transition in N*m or N; 0 = a sharp switch). The load is the
+    model's statics, or with `load_coef` the load identified from the data (gravity regressor columns
+    and the payload column, see gravity.py), so the switch follows the real load when masses are off."""
 
     kind = "backlash"
     needs = "mass"
     transition: float = 0.0
+    load_coef: tuple = ()
+    search_dof: int = 0  # parameters spent finding the load from the residual (counted in the F-test)
     TRANSITION_SHARE = 0.02  # of the largest load in the calibration data
 
     def parameter_names(self, model):
@@ -58,16 +86,27 @@ class Backlash(Effect):
     def parameter_units(self, model):
         return [_offset_unit(model, self.joints[0])]
 
+    def load(self, ctx: Context) -> np.ndarray:
+        j = self.joints[0]
+        if not self.load_coef:
+            return ctx.loads[:, j]
+        from .gravity import gravity_regressor, payload_load
+
+        coef = np.asarray(self.load_coef, float)
+        return gravity_regressor(ctx.chain, j) @ coef[:-1] + coef[-1] * payload_load(ctx.chain, ctx.meas.payload_kg(), j)
+
     def basis(self, ctx: Context) -> Basis:
         j = self.joints[0]
-        load = ctx.loads[:, j]
+        load = self.load(ctx)
         s = np.tanh(load / self.transition) if self.transition > 0 else np.sign(load)
         N, n = ctx.meas.joints.shape
-        return Basis(joint_basis(N, n, j, 0.5 * s[:, None]), None, ctx.loads[:, j],
-                     f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
+        how = "identified " if self.load_coef else ""
+        return Basis(joint_basis(N, n, j, 0.5 * s[:, None]), None, load,
+                     f"{how}gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
 
     def explain(self, model):
-        return f"{model.joint_names[self.joints[0]]} shifts by its gear play when its load changes sign"
+        how = " (its load identified from the data)" if self.load_coef else ""
+        return f"{model.joint_names[self.joints[0]]} shifts by its gear play when its load changes sign{how}"
 
 
 @dataclass(frozen=True)

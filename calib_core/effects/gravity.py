@@ -1,0 +1,141 @@
+"""Gravity loads identified from the data: the lumped mass x centre-of-mass terms of every body.
+
+The static gravity torque on revolute joint j is linear in each distal body's mass m_k and first moment
+s_k = m_k c_k (kg, kg*mm, in body k's frame):
+
+    tau_j = sum_{k >= j} m_k z_j . ((o_k - o_j) x g) + s_k . R_k^T (g x z_j)        (N*m after / 1000)
+
+so with untrusted or missing mass data, a load-driven cause is tested as a combination of these regressor
+columns (Y_j, per joint) instead of the model's torque. Prismatic joints carry z_j . g times the distal mass.
+The payload (known mass at the tool) stays a known column. Only combinations the pose set excites and the
+geometry cannot absorb are kept (`load_mix`), so the plug-in stays linear in its parameters.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..kinematics import _cross
+from ..statics import gravity_world
+from .base import Basis, Context, Effect
+
+MAX_LOAD_TERMS = 6
+"""At most this many regressor combinations per joint: a joint's gravity torque over a workspace is a few
+harmonics of the distal joints; more terms only fit noise."""
+
+
+def gravity_regressor(chain, j: int) -> np.ndarray:
+    """Y_j (N, m): the gravity load on joint j per unit mass (column 4k) and first moment (4k+1..3) of
+    every body k >= j; N*m per kg and per kg*mm (revolute), N per kg (prismatic)."""
+    g = gravity_world(chain)
+    n = chain.model.n_joints
+    z, o = chain.z_axis[j], chain.o_theta[j]
+    if chain.model.prismatic[j]:
+        col = z @ g
+        return np.repeat(col[:, None], n - j, axis=1)
+    cols = []
+    gz = _cross(np.broadcast_to(g, z.shape), z)  # g x z_j, (N, 3)
+    for k in range(j, n):
+        cols.append((z * _cross(chain.o_beta[k] - o, np.broadcast_to(g, o.shape))).sum(1)[:, None] / 1000.0)
+        cols.append(np.einsum("nab,na->nb", chain.R[k], gz) / 1000.0)
+    return np.concatenate(cols, axis=1)
+
+
+def payload_load(chain, payload_kg: np.ndarray, j: int) -> np.ndarray:
+    """Gravity load (N,) of the known payload at the measured point on joint j (N*m or N)."""
+    g = gravity_world(chain)
+    z = chain.z_axis[j]
+    if chain.model.prismatic[j]:
+        return payload_kg * (z @ g)
+    return payload_kg * (z * _cross(chain.p - chain.o_theta[j], np.broadcast_to(g, z.shape))).sum(1) / 1000.0
+
+
+def _as_matrix(t) -> np.ndarray:
+    return np.array(t, float).reshape(len(t), -1)
+
+
+def _as_tuple(a: np.ndarray) -> tuple:
+    return tuple(tuple(float(v) for v in row) for row in np.atleast_2d(a))
+
+
+@dataclass(frozen=True)
+class LoadCompliance(Effect):
+    """dq_j = Y_j(q) M_j phi_j + c_j tau_payload_j on each joint j: compliance under a gravity load whose
+    mass data are identified from the data (the model's masses are 15 % off, or absent). `load_mix`
+    holds M_j per joint (regressor columns -> the combinations the pose set can tell apart)."""
+
+    kind = "joint_compliance"
+    needs = "gravity"
+    load_mix: tuple = ()
+    payload: bool = False
+
+    def _sizes(self) -> list[int]:
+        return [len(m[0]) if m else 0 for m in self.load_mix]
+
+    def parameter_names(self, model):
+        out = []
+        for j, k in zip(self.joints, self._sizes()):
+            name = model.joint_names[j]
+            out += [f"{name}.gravity_deflection_{i + 1}" for i in range(k)]
+            if self.payload:
+                out.append(f"{name}.payload_compliance")
+        return out
+
+    def parameter_units(self, model):
+        out = []
+        for j, k in zip(self.joints, self._sizes()):
+            off = "mm" if model.prismatic[j] else "rad"
+            out += [off] * k
+            if self.payload:
+                out.append(f"{off}/{'N' if model.prismatic[j] else 'N*m'}")
+        return out
+
+    def label(self, model):
+        return super().label(model) + " identified load"
+
+    def basis(self, ctx: Context) -> Basis:
+        N, n = ctx.meas.joints.shape
+        cols, reg = [], np.zeros(N)
+        for j, mix in zip(self.joints, self.load_mix):
+            Y = gravity_regressor(ctx.chain, j) @ _as_matrix(mix)
+            part = [Y]
+            if self.payload:
+                part.append(payload_load(ctx.chain, ctx.meas.payload_kg(), j)[:, None])
+            block = np.concatenate(part, axis=1)
+            b = np.zeros((N, n, block.shape[1]))
+            b[:, j, :] = block
+            cols.append(b)
+            if len(self.joints) == 1:
+                reg = Y[:, 0]
+        label = ("identified gravity load on " + ",".join(ctx.model.joint_names[j] for j in self.joints)
+                 + " (first combination)")
+        return Basis(np.concatenate(cols, axis=2), None, reg, label)
+
+    def explain(self, model):
+        who = ", ".join(model.joint_names[j] for j in self.joints)
+        many = len(self.joints) > 1
+        return (f"{'the joints ' + who + ' deflect' if many else who + ' deflects'} under gravity and payload "
+                "(load identified from the data, not from the mass data)")
+
+
+def load_mix_for(chain, j: int, absorb: np.ndarray | None = None, Jq: np.ndarray | None = None,
+                 sigma: np.ndarray | None = None) -> np.ndarray | None:
+    """The regressor combinations M_j (m, r) of joint j that the poses excite, orthogonal to what the
+    current model absorbs (Q, (3N, p) orthonormal, weighted by sigma) when given; None if none is left."""
+    Y = gravity_regressor(chain, j)
+    A0 = Y if absorb is None else (Jq[:, :, j][:, :, None] * Y[:, None, :] / sigma[:, None, None]).reshape(-1, Y.shape[1])
+    scale = np.linalg.norm(A0, axis=0)
+    keep = scale > 1e-9 * max(scale.max(), 1e-300)
+    if not keep.any():
+        return None
+    A0 = A0[:, keep] / scale[keep]
+    A = A0 if absorb is None else A0 - absorb @ (absorb.T @ A0)
+    ref = np.linalg.svd(A0, compute_uv=False)[0]
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    r = int(min(MAX_LOAD_TERMS, (s > 1e-2 * ref).sum()))
+    if r == 0:
+        return None
+    M = np.zeros((Y.shape[1], r))
+    M[keep] = Vt[:r].T / scale[keep, None]
+    return M

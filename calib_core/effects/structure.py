@@ -1,0 +1,153 @@
+"""Structure outside the named causes: what a residual follows (time order, one joint, the load, a region
+of the workspace), as plug-ins of the same shape, so the same F-test tells whether the residual follows it.
+
+`SessionStep` is also a model extension: something changed mid-session (a re-homing, a bumped tracker or
+SMR nest). It never extrapolates: after the session the robot stays in its last state.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..kinematics import _cross
+from .base import Basis, Context, Effect
+
+
+def session_clock(meas) -> tuple[np.ndarray, str]:
+    """Per-pose time (s since the epoch) or, without timestamps, the row order; and its name."""
+    if meas.timestamp is not None:
+        return np.asarray(meas.timestamp, float), "time"
+    return np.arange(meas.n_poses, dtype=float), "row"
+
+
+@dataclass(frozen=True)
+class SessionStep(Effect):
+    """A step at `at` in time order: a joint offset (joints = (j,)) or a 6-DoF shift of the whole robot
+    against the tracker (joints = ()). Poses at or after `at` carry the step; poses without a time (new
+    programs) are taken to be after it, the robot's current state."""
+
+    kind = "unexplained"
+    at: float = 0.0
+    source: str = "time"
+
+    def after(self, meas) -> np.ndarray:
+        if self.source == "time" and meas.timestamp is not None:
+            return (np.asarray(meas.timestamp) >= self.at).astype(float)
+        if self.source == "row" and meas.timestamp is None and meas.n_poses > self.at:
+            return (np.arange(meas.n_poses) >= self.at).astype(float)
+        return np.ones(meas.n_poses)
+
+    def parameter_names(self, model):
+        if self.joints:
+            return [f"{model.joint_names[self.joints[0]]}.step"]
+        return [f"step.{a}" for a in ("x", "y", "z", "rx", "ry", "rz")]
+
+    def parameter_units(self, model):
+        if self.joints:
+            return ["mm" if model.prismatic[self.joints[0]] else "rad"]
+        return ["mm"] * 3 + ["rad"] * 3
+
+    def basis(self, ctx: Context) -> Basis:
+        s = self.after(ctx.meas)
+        N, n = ctx.meas.joints.shape
+        if self.joints:
+            b = np.zeros((N, n, 1))
+            b[:, self.joints[0], 0] = s
+            return Basis(b, None, s, "after the step (0 / 1)")
+        lever = ctx.chain.p - ctx.chain.base_origin
+        cart = np.zeros((N, 3, 6))
+        for a in range(3):
+            cart[:, a, a] = s
+            e = np.zeros(3)
+            e[a] = 1.0
+            cart[:, :, 3 + a] = _cross(np.broadcast_to(e, lever.shape), lever) * s[:, None]
+        return Basis(None, cart, s, "after the step (0 / 1)")
+
+    def label(self, model):
+        return f"step[{','.join(model.joint_names[j] for j in self.joints) or 'robot'} @ {self.at:g}]"
+
+    def explain(self, model):
+        what = f"{model.joint_names[self.joints[0]]}'s zero" if self.joints else "the robot against the tracker"
+        return f"{what} shifted mid-session (a re-homing, a bumped tracker or SMR nest)"
+
+
+def step_candidates(meas, joints: list[int], n_splits: int = 16, margin: int = 8) -> list[SessionStep]:
+    """Steps at n_splits evenly spaced places in time order, each on the whole robot and on every joint."""
+    clock, source = session_clock(meas)
+    order = np.sort(clock)
+    N = len(order)
+    if N < 2 * margin + 2:
+        return []
+    idx = np.unique(np.linspace(margin, N - margin, n_splits).astype(int))
+    out = []
+    for i in idx:
+        at = float(0.5 * (order[i - 1] + order[i])) if source == "time" else float(i)
+        out.append(SessionStep((), at=at, source=source))
+        out += [SessionStep((j,), at=at, source=source) for j in joints]
+    return out
+
+
+@dataclass(frozen=True)
+class Probe(Effect):
+    """A Cartesian regression on one family of regressors, only to ask what a residual follows:
+    'joint' (harmonics of one joint), 'region' (quadratic in the tool position), 'time' (drift)."""
+
+    kind = "unexplained"
+    family: str = "joint"
+
+    def _features(self, ctx: Context) -> tuple[np.ndarray, np.ndarray, str]:
+        m, q = ctx.model, ctx.meas.joints
+        if self.family == "joint":
+            j = self.joints[0]
+            if m.prismatic[j]:
+                lo, hi = m.limits[j]
+                s = (q[:, j] - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
+                return np.column_stack([s, s**2, s**3]), q[:, j], f"{m.joint_names[j]} (mm)"
+            a = q[:, j]
+            return (np.column_stack([np.cos(a), np.sin(a), np.cos(2 * a), np.sin(2 * a)]), np.degrees(a),
+                    f"{m.joint_names[j]} (deg)")
+        if self.family == "region":
+            p = ctx.chain.p - ctx.chain.p.mean(0)
+            p = p / max(float(np.abs(p).max()), 1e-9)
+            x, y, z = p.T
+            return np.column_stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z]), ctx.chain.p[:, 2], \
+                "tool height in the measurement frame (mm)"
+        clock, source = session_clock(ctx.meas)
+        t = (clock - clock.mean()) / max(float(np.ptp(clock)), 1e-9)
+        return np.column_stack([t, t**2]), clock, "time (s)" if source == "time" else "row order"
+
+    def _n_features(self, model) -> int:
+        if self.family == "joint":
+            return 3 if model.prismatic[self.joints[0]] else 4
+        return 9 if self.family == "region" else 2
+
+    def parameter_names(self, model):
+        return [f"probe.{a}{i}" for a in "xyz" for i in range(self._n_features(model))]
+
+    def parameter_units(self, model):
+        return ["mm"] * len(self.parameter_names(model))
+
+    def basis(self, ctx: Context) -> Basis:
+        phi, reg, label = self._features(ctx)
+        N, F = phi.shape
+        cart = np.zeros((N, 3, 3 * F))
+        for a in range(3):
+            cart[:, a, a * F:(a + 1) * F] = phi
+        return Basis(None, cart, reg, label)
+
+    def describe(self, model) -> str:
+        if self.family == "joint":
+            return f"the angle or travel of {model.joint_names[self.joints[0]]}"
+        return {"region": "the tool's position in the workspace", "time": "time order (a drift)"}[self.family]
+
+    def explain(self, model):
+        return f"the residual follows {self.describe(model)}"
+
+
+def probes(model, meas) -> list[Probe]:
+    """One probe per joint that moves, one for the workspace region, one for time order."""
+    out = [Probe((j,), family="joint") for j in range(model.n_joints) if np.ptp(meas.joints[:, j]) > 1e-3]
+    out.append(Probe((), family="region"))
+    out.append(Probe((), family="time"))
+    return out
