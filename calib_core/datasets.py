@@ -102,17 +102,23 @@ def _dh_joint(name: str, a_m: float, d_m: float, alpha_rad: float, theta_rad: fl
 
 
 def _csv_text(points: list[str], joint_names: tuple[str, ...], q_deg: np.ndarray,
-              xyz_mm: np.ndarray, extra: dict[str, tuple[np.ndarray, str]] | None = None) -> str:
-    """Contract CSV: ``point,<joints>,x,y,z[,extra...]``; joints 8 decimals (deg), mm 6 decimals."""
+              xyz_mm: np.ndarray, extra: dict[str, tuple[np.ndarray, str]] | None = None,
+              q_fmt: str = "{:.8f}", xyz_fmt: str = "{:.6f}") -> str:
+    """Contract CSV: ``point,<joints>,x,y,z[,extra...]``; joints 8 decimals (deg), mm 6 decimals
+    unless ``q_fmt`` / ``xyz_fmt`` say otherwise (fixed-point formats are rounded first)."""
     extra = extra or {}
-    q_deg = np.round(q_deg, 8) + 0.0  # +0.0 turns -0.0 into 0.0 so no "-0.00000000" cells
-    xyz_mm = np.round(xyz_mm, 6) + 0.0
+    if q_fmt.endswith("f}"):
+        q_deg = np.round(q_deg, int(q_fmt[3:-2]))
+    if xyz_fmt.endswith("f}"):
+        xyz_mm = np.round(xyz_mm, int(xyz_fmt[3:-2]))
+    q_deg = q_deg + 0.0  # +0.0 turns -0.0 into 0.0 so no "-0.00000000" cells
+    xyz_mm = xyz_mm + 0.0
     out = io.StringIO()
     out.write(",".join(["point", *joint_names, "x", "y", "z", *extra]) + "\n")
     for i, pid in enumerate(points):
         cells = [pid]
-        cells += [f"{v:.8f}" for v in q_deg[i]]
-        cells += [f"{v:.6f}" for v in xyz_mm[i]]
+        cells += [q_fmt.format(v) for v in q_deg[i]]
+        cells += [xyz_fmt.format(v) for v in xyz_mm[i]]
         cells += [fmt.format(col[i]) for col, fmt in extra.values()]
         out.write(",".join(cells) + "\n")
     return out.getvalue()
@@ -206,3 +212,136 @@ def iiwa7_payload(payload_kg: float | None = 0.0, root: Path | str = SHARED_DATA
     csv_text = _csv_text(points, IIWA_JOINTS, np.vstack(q), np.vstack(xyz),
                          {"payload": (np.concatenate(payload), "{:g}")})
     return Dataset(name, _iiwa_model(folder), csv_text, notes)
+
+
+# --- DLR Agile Justin ---------------------------------------------------------------------
+
+JUSTIN_DIR = "dlr_agile_justin"
+JUSTIN_TORSO = ("T1", "T2", "T3", "T4c")
+"""Torso pan, tilt 1, tilt 2 and the passive coupled joint T4c = -T2 - T3 (computed, not measured)."""
+JUSTIN_ARMS = {"right": tuple(f"R{i}" for i in range(1, 8)), "left": tuple(f"L{i}" for i in range(1, 8))}
+JUSTIN_Q = {"right": range(3, 10), "left": range(10, 17)}
+"""Columns q3..q9 (right arm) and q10..q16 (left arm) of measurements_flat.csv."""
+JUSTIN_MARKER_M = {"right": (-0.1, -0.03, 0.1), "left": (-0.1, 0.03, 0.05)}
+"""Marker in each arm's TCP frame (m), the dataset site's initial guesses."""
+JUSTIN_SIGMA_MM = 0.2
+"""Per-axis 1-sigma of a Vicon marker position: Merriaux et al., "A Study of Vicon System Positioning
+Performance", Sensors 17(7):1591 (2017) measured a static mean absolute error of 0.15 mm (variability
+< 0.025 mm), i.e. ~0.1 mm per axis for a 3-D Gaussian; doubled for Justin's larger volume (markers
+2-4 m from the Vicon origin, six cameras) and a marker on a hand that has just stopped."""
+JUSTIN_LIMIT_PAD_DEG = 5.0
+
+
+def justin_available(root: Path | str = SHARED_DATASETS) -> bool:
+    """True when the DLR Agile Justin dataset (model YAML and flat CSV) is present under ``root``."""
+    folder = Path(root) / JUSTIN_DIR
+    return (folder / "justin19_nominal.yaml").is_file() and (folder / "measurements_flat.csv").is_file()
+
+
+def _rokin_dh(d: float, theta: float, a: float, alpha: float) -> np.ndarray:
+    """rokin's dh2frame (Craig / modified DH) at q = 0: Rx(alpha) Tx(a) Rz(theta) Tz(d)."""
+    from .frames import rot_x, rot_z, trans
+
+    return rot_x(alpha) @ trans(a) @ rot_z(theta) @ trans(z=d)
+
+
+def agile_justin_links(arm: str = "right", root: Path | str = SHARED_DATASETS):
+    """The rokin chain of one arm as :class:`calib_core.frames.Link` s (m, rad) and the marker in the last frame.
+
+    F_TORSO_BASE, DH_TORSO(q0, q1, q2, -q1-q2), F_<ARM>_BASE, DH_<ARM>(7 joints), F_TCP, marker.
+    Every link's Rz(q) sits after its own Tz(d) (they commute), so each DH row at q = 0 is the
+    fixed part. The published F_<ARM>_BASE rotations are rounded (0.866 for cos 30 deg): they
+    are replaced by the nearest rotation (changes entries by < 3e-5)."""
+    from .frames import Link, nearest_rotation
+
+    if arm not in JUSTIN_ARMS:
+        raise ValueError(f"arm must be 'right' or 'left', not {arm!r}")
+    folder = _folder(root, JUSTIN_DIR)
+    y = yaml.safe_load((folder / "justin19_nominal.yaml").read_text())
+    lim_deg = y["joint_limits_deg"]
+    torso_lim = [np.radians(v) for v in lim_deg["torso"]] + [None]
+    links = []
+    for k, (row, name) in enumerate(zip(y["DH_TORSO"], JUSTIN_TORSO)):
+        T = _rokin_dh(*row)
+        if k == 0:
+            T = np.array(y["F_TORSO_BASE"], float) @ T
+        lim = None if torso_lim[k] is None else (float(torso_lim[k][0]), float(torso_lim[k][1]))
+        links.append(Link(T, "revolute", name, lim))
+    arm_base = nearest_rotation(y[f"F_{arm.upper()}_BASE"])
+    for k, (row, name) in enumerate(zip(y[f"DH_{arm.upper()}"], JUSTIN_ARMS[arm])):
+        T = _rokin_dh(*row)
+        if k == 0:
+            T = arm_base @ T
+        lo, hi = np.radians(lim_deg["arm"][k])
+        links.append(Link(T, "revolute", name, (float(lo), float(hi))))
+    links.append(Link(np.array(y["F_TCP"], float), "fixed", "TCP"))
+    return links, np.array(JUSTIN_MARKER_M[arm], float)
+
+
+def agile_justin(arm: str = "right", root: Path | str = SHARED_DATASETS) -> Dataset:
+    """DLR Agile Justin, torso + one 7-DoF arm, 500 Vicon marker positions (dlr-alr/dlr-elastic-calibration).
+
+    Source files: ``dlr_agile_justin/justin19_nominal.yaml`` (rokin's modified-DH tables and static
+    frames, m/rad) and ``measurements_flat.csv`` (19 commanded joint angles in rad; right and left
+    hand marker in the Vicon frame, m). The chain F_TORSO_BASE, the torso rows (q0 pan, q1 tilt 1,
+    q2 tilt 2, passive q3c = -q1 - q2), F_<ARM>_BASE, the 7 arm rows, F_TCP and the marker
+    (right [-0.1, -0.03, 0.1], left [-0.1, 0.03, 0.05] m in the TCP frame) is folded exactly
+    into contract MD-H rows by :mod:`calib_core.frames` (Hayati beta where axes are parallel:
+    the three torso tilt axes are). The model is in m and rad (``units`` says so), CSV likewise.
+
+    * The passive coupled joint has no column in the data: it is written as the extra joint
+      column ``T4c`` = -T2 - T3. The contract cannot yet express coupling (issue 11 will), so a
+      calibration treats T4c as an independent measured joint; its limits are the data range
+      padded by 5 deg.
+    * The vendor pan limit (+-120 deg) rejects rows the robot really reached (-130 .. 199 deg):
+      every limit the data exceed is widened to the data range padded by 5 deg.
+    * ``sigma`` = 0.2 mm per axis (Vicon, not a laser tracker; see ``JUSTIN_SIGMA_MM``): without
+      it the service would assume a laser tracker (15 um + 6 um/m).
+    * Gravity is -z of the robot base (the Vicon frame is z up and T_c0 only turns about z),
+      rotated into the folded base frame (here the identity: the pan axis is the base z).
+    * No masses or COMs are published for this model: none are written. Joint values are
+      commanded, and the arm is visibly elastic (the paper's 21 mm before calibration).
+    """
+    from .frames import fold_links
+
+    links, marker = agile_justin_links(arm, root)
+    folder = _folder(root, JUSTIN_DIR)
+    cols = _read_columns(folder / "measurements_flat.csv")
+    torso = np.column_stack([cols["q0"], cols["q1"], cols["q2"], -cols["q1"] - cols["q2"]])
+    arm_q = np.column_stack([cols[f"q{i}"] for i in JUSTIN_Q[arm]])
+    q = np.hstack([torso, arm_q])
+    names = JUSTIN_TORSO + JUSTIN_ARMS[arm]
+
+    pad = math.radians(JUSTIN_LIMIT_PAD_DEG)
+    limits, widened = [], []
+    for j, link in enumerate(lk for lk in links if lk.type != "fixed"):
+        lo_d, hi_d = float(q[:, j].min()), float(q[:, j].max())
+        if link.limits is None:
+            lim = (lo_d - pad, hi_d + pad)
+        elif lo_d < link.limits[0] or hi_d > link.limits[1]:
+            lim = (min(link.limits[0], lo_d - pad), max(link.limits[1], hi_d + pad))
+            widened.append(f"{names[j]} [{math.degrees(link.limits[0]):g}, {math.degrees(link.limits[1]):g}] -> "
+                           f"[{math.degrees(lim[0]):.1f}, {math.degrees(lim[1]):.1f}] deg")
+        else:
+            lim = link.limits
+        limits.append((math.floor(lim[0] * 1e9) / 1e9, math.ceil(lim[1] * 1e9) / 1e9))  # outward, 9 decimals
+
+    folded = fold_links(links, marker, gravity=(0.0, 0.0, -9.81))
+    model = folded.model_dict(f"dlr_agile_justin_{arm}", length_unit="m", angle_unit="rad", limits=limits)
+    xyz = np.column_stack([cols[f"{arm}_{c}"] for c in "xyz"])
+    points = [str(int(i)) for i in cols["idx"]]
+    sigma = np.full(len(points), JUSTIN_SIGMA_MM / 1000.0)
+    csv_text = _csv_text(points, names, q, xyz, {"sigma": (sigma, "{:g}")}, q_fmt="{:.12g}", xyz_fmt="{:.10g}")
+    notes = (f"DLR Agile Justin {arm} arm + torso, dlr-alr/dlr-elastic-calibration measurements.csv "
+             f"(commit 35149b7, 500 poses, commanded joints rad, Vicon hand marker m) with rokin justin19 "
+             f"nominal modified DH; chain torso + F_{arm.upper()}_BASE + 7 arm joints + F_TCP + marker "
+             f"{list(JUSTIN_MARKER_M[arm])} m folded exactly to MD-H (frames.py; Hayati form d = 0 / beta "
+             f"at the parallel torso tilt axes); "
+             f"units m/rad; passive coupled torso joint written as extra column T4c = -T2 - T3 (coupling not "
+             f"expressible in the contract yet, issue 11; T4c limits = data range +-5 deg); "
+             f"vendor limits widened to the data: {'; '.join(widened) or 'none'}; "
+             f"sigma {JUSTIN_SIGMA_MM} mm per axis (Vicon; Merriaux et al. 2017 static 0.15 mm mean error, doubled "
+             f"for a larger volume) instead of the laser-tracker default; gravity -z of the robot base; "
+             f"no masses; F_{arm.upper()}_BASE rotation (rounded 0.866) replaced by the nearest rotation; "
+             f"licence none stated")
+    return Dataset(f"agile_justin_{arm}", model, csv_text, notes)

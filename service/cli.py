@@ -86,7 +86,9 @@ def cmd_convert_dataset(args) -> int:
 
     from calib_core import datasets
 
-    readers = {"motoman_leica": datasets.motoman_leica, "iiwa7_payload": lambda: datasets.iiwa7_payload(None)}
+    readers = {"motoman_leica": datasets.motoman_leica, "iiwa7_payload": lambda: datasets.iiwa7_payload(None),
+               "agile_justin_right": lambda: datasets.agile_justin("right"),
+               "agile_justin_left": lambda: datasets.agile_justin("left")}
     try:
         ds = readers[args.name]()
     except FileNotFoundError as exc:
@@ -134,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     demo.set_defaults(fn=cmd_demo)
     cv = sub.add_parser("convert-dataset", help="write a real dataset of ../shared/datasets as contract model.json "
                         "and measurements.csv")
-    cv.add_argument("name", choices=["motoman_leica", "iiwa7_payload"])
+    cv.add_argument("name", choices=["motoman_leica", "iiwa7_payload", "agile_justin_right", "agile_justin_left"])
     cv.add_argument("outdir")
     cv.set_defaults(fn=cmd_convert_dataset)
     args = p.parse_args(argv)

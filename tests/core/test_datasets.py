@@ -1,5 +1,7 @@
 """Real-data readers: shape, units, limits, and a physics check independent of our solver.
 
+(The Agile Justin checks at the end also run our registration: ``identify(free=("base", "tool"))``.)
+
 The physics check re-parses the contract CSV, runs a tiny standard-DH forward
 kinematics written here (numpy only), fits the unknown tracker -> base transform
 (and for the iiwa the unknown marker offset) and checks the residual is the few
@@ -16,14 +18,21 @@ import pytest
 
 from calib_core.datasets import (
     IIWA_JOINTS,
+    JUSTIN_ARMS,
+    JUSTIN_MARKER_M,
+    JUSTIN_TORSO,
     MOTOMAN_JOINTS,
+    SHARED_DATASETS,
     Dataset,
+    agile_justin,
     available,
     iiwa7_payload,
+    justin_available,
     motoman_leica,
 )
 
-pytestmark = pytest.mark.skipif(not available(), reason="../shared/datasets not present")
+needs_shared = pytest.mark.skipif(not available(), reason="../shared/datasets not present")
+needs_justin = pytest.mark.skipif(not justin_available(), reason="../shared/datasets/dlr_agile_justin not present")
 
 
 # --- helpers written independently of calib_core ---------------------------------------
@@ -79,6 +88,7 @@ def check_limits(ds: Dataset, q: np.ndarray) -> None:
 
 # --- tests --------------------------------------------------------------------------
 
+@needs_shared
 def test_motoman_shape_units_limits():
     ds = motoman_leica()
     assert ds.model["convention"] == "dh"
@@ -100,6 +110,7 @@ def test_motoman_shape_units_limits():
     assert "\n" not in ds.notes
 
 
+@needs_shared
 def test_motoman_physics_rms():
     ds = motoman_leica()
     q, xyz, _ = joints_and_xyz(ds, MOTOMAN_JOINTS)
@@ -114,6 +125,7 @@ def test_motoman_physics_rms():
     assert rms(p_bad @ R.T + t - xyz) > 2 * r
 
 
+@needs_shared
 @pytest.mark.parametrize("payload", [0.0, 1.25, 2.5, 5.0])
 def test_iiwa_shape_units_limits(payload):
     ds = iiwa7_payload(payload)
@@ -130,6 +142,7 @@ def test_iiwa_shape_units_limits(payload):
     assert 1200 < xyz[:, 2].max() < 1400  # marker above the 1266 mm tall arm, mm
 
 
+@needs_shared
 def test_iiwa_all_runs():
     ds = iiwa7_payload(None)
     _, cols, points = parse_csv(ds.csv_text)
@@ -138,6 +151,7 @@ def test_iiwa_all_runs():
     assert all(np.sum(cols["payload"] == p) == 198 for p in (0.0, 1.25, 2.5, 5.0))
 
 
+@needs_shared
 def test_iiwa_unknown_payload_and_missing_folder(tmp_path):
     with pytest.raises(ValueError):
         iiwa7_payload(3.0)
@@ -169,6 +183,7 @@ def fit_base_and_marker(model: dict, q: np.ndarray, xyz: np.ndarray) -> float:
     return rms(sol.fun.reshape(-1, 3))
 
 
+@needs_shared
 def test_iiwa_physics_rms():
     found = {}
     for payload in (0.0, 5.0):
@@ -182,3 +197,114 @@ def test_iiwa_physics_rms():
           + ", ".join(f"{p:g} kg RMS {r:.3f} mm" for p, r in found.items()))
     assert found[0.0] < 4.0
     assert found[5.0] < 6.0
+
+
+# --- DLR Agile Justin (torso + one arm, Vicon) ------------------------------------------------
+
+def _rot(axis: str, a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    R = {"x": [[1, 0, 0], [0, c, -s], [0, s, c]], "z": [[c, -s, 0], [s, c, 0], [0, 0, 1]]}[axis]
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
+
+
+def _tr(x=0.0, z=0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3], T[2, 3] = x, z
+    return T
+
+
+def rokin_marker(arm: str, q: np.ndarray, orthonormal: bool) -> np.ndarray:
+    """rokin's chain straight from the YAML, plain 4x4 products (m); q = [T1, T2, T3, T4c, arm 1..7]."""
+    import yaml
+
+    y = yaml.safe_load((SHARED_DATASETS / "dlr_agile_justin" / "justin19_nominal.yaml").read_text())
+    F_arm = np.array(y[f"F_{arm.upper()}_BASE"], float)
+    if orthonormal:  # the published 0.866 entries are cos 30 deg rounded: nearest rotation
+        U, _, Vt = np.linalg.svd(F_arm[:3, :3])
+        F_arm[:3, :3] = U @ Vt
+
+    def dh(row, qi):  # Rx(alpha) Tx(a) Rz(theta + q) Tz(d), rows [d, theta, a, alpha]
+        d, th, a, al = row
+        return _rot("x", al) @ _tr(x=a) @ _rot("z", th + qi) @ _tr(z=d)
+
+    out = []
+    for qi in q:
+        T = np.array(y["F_TORSO_BASE"], float)
+        for k in range(4):
+            T = T @ dh(y["DH_TORSO"][k], qi[k])
+        T = T @ F_arm
+        for k in range(7):
+            T = T @ dh(y[f"DH_{arm.upper()}"][k], qi[4 + k])
+        T = T @ np.array(y["F_TCP"], float)
+        out.append((T @ np.r_[JUSTIN_MARKER_M[arm], 1.0])[:3])
+    return np.array(out)
+
+
+def _justin(arm):
+    from calib_core.io import parse_measurements
+    from calib_core.model import parse_model
+
+    ds = agile_justin(arm)
+    model = parse_model(ds.model)  # validates the contract model
+    return ds, model, parse_measurements(ds.csv_text, model)  # validates the CSV against it (limits too)
+
+
+@needs_justin
+@pytest.mark.parametrize("arm", ["right", "left"])
+def test_justin_shape_units_limits(arm):
+    ds, model, meas = _justin(arm)
+    names = [*JUSTIN_TORSO, *JUSTIN_ARMS[arm]]
+    assert ds.name == f"agile_justin_{arm}"
+    assert ds.model["convention"] == "mdh" and ds.model["units"] == {"length": "m", "angle": "rad"}
+    assert [j["name"] for j in ds.model["joints"]] == names
+    assert all("mass" not in j and "com" not in j for j in ds.model["joints"])
+    assert ds.model["gravity"] == [0.0, 0.0, -9.81]  # the pan axis is the base z: base frame kept
+    header, cols, points = parse_csv(ds.csv_text)
+    assert header == ["point", *names, "x", "y", "z", "sigma"]
+    assert meas.n_poses == 500 and len(set(points)) == 500
+    assert np.allclose(cols["T4c"], -cols["T2"] - cols["T3"], atol=1e-11, rtol=0)  # the passive coupled joint
+    assert np.all(cols["sigma"] == 0.0002)  # 0.2 mm, in metres like x, y, z
+    assert np.abs(meas.sigma - 0.2).max() < 1e-12  # internally mm
+    assert 1.0 < np.abs(np.column_stack([cols["x"], cols["y"]])).max() < 5.0  # metres
+    assert np.degrees(cols["T1"]).max() > 190  # the pan really went past the vendor's 120 deg
+    q, _, _ = joints_and_xyz(ds, names)
+    check_limits(ds, q)
+    assert "\n" not in ds.notes and "issue 11" in ds.notes and "sigma" in ds.notes
+
+
+@needs_justin
+@pytest.mark.parametrize("arm", ["right", "left"])
+def test_justin_fold_matches_rokin_chain(arm):
+    """The folded MD-H model through calib_core.kinematics gives rokin's marker point exactly."""
+    from calib_core.kinematics import forward, nominal_vector
+
+    ds, model, meas = _justin(arm)
+    q = meas.joints[:60]  # rad
+    p = forward(model, nominal_vector(model), q)  # mm, MD-H base = robot base here
+    assert np.abs(p - 1000.0 * rokin_marker(arm, q, orthonormal=True)).max() < 1e-9
+    # the published (rounded, not quite rigid) F_X_BASE differs by a few hundredths of a millimetre
+    assert np.abs(p - 1000.0 * rokin_marker(arm, q, orthonormal=False)).max() < 0.05
+
+
+@needs_justin
+@pytest.mark.parametrize("arm", ["right", "left"])
+def test_justin_registration_residual(arm):
+    """Base and marker registered, nominal kinematics: ~20 mm mean as the NOTES and the paper (21 mm) say."""
+    from calib_core.identify import identify
+
+    ds, model, meas = _justin(arm)
+    cal = identify(model, meas, free=("base", "tool"), folds=1)
+    m = cal.metrics()
+    print(f"agile justin {arm}: registration only mean {m['mean_mm']:.2f} mm, RMS {m['rms_mm']:.2f} mm")
+    assert 15.0 < m["mean_mm"] < 25.0
+    assert np.linalg.norm(cal.x[-3:] - model.tool) < 30.0  # the marker guess was close (mm)
+
+
+def test_justin_missing_folder_and_bad_arm(tmp_path):
+    assert not justin_available(tmp_path)
+    with pytest.raises(FileNotFoundError, match="dlr_agile_justin"):
+        agile_justin("right", root=tmp_path)
+    with pytest.raises(ValueError, match="arm"):
+        agile_justin("middle", root=tmp_path)
