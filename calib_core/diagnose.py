@@ -11,6 +11,7 @@ the floor, the answer says what it follows (time order, a joint, the load, a wor
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Callable
@@ -268,31 +269,51 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, meas, chosen, loss,
     return tried[0][0], tried[0][1], alike
 
 
-def _refinements(e: Effect, load_pool: dict[int, LoadCompliance]) -> list[Effect]:
+PLAY_PASSES = 2
+"""Times the play's switch is classified again on the residual with the fitted play put back."""
+SOFT_PLAY = (0.1, 0.3)
+"""Transitions (share of the largest load) of a soft gear play, tried when a play or a spring is found."""
+
+
+def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dict[int, Backlash]) -> list[Effect]:
     """Richer forms of an accepted cause, kept only if held-out poses prefer them: a stiffening spring, the
-    load identified from the data instead of the mass data."""
+    load identified from the data instead of the mass data, a play whose switch follows the identified load,
+    a soft play (the joint moves through its play elastically near zero load)."""
+    if len(e.joints) != 1:
+        return []
+    j = e.joints[0]
     out: list[Effect] = []
-    if isinstance(e, JointCompliance) and len(e.joints) == 1 and not e.cubic:
+    if isinstance(e, JointCompliance) and not e.cubic:
         out.append(JointCompliance(e.joints, cubic=True))
-    if isinstance(e, (JointCompliance, Backlash)) and len(e.joints) == 1 and e.joints[0] in load_pool \
-            and not getattr(e, "load_coef", ()):
-        if isinstance(e, JointCompliance):
-            out.append(load_pool[e.joints[0]])
+    if isinstance(e, JointCompliance) and j in load_pool:
+        out.append(load_pool[j])
+    if isinstance(e, Backlash):
+        share = Backlash.TRANSITION_SHARE
+        if not e.load_coef:
+            out += [dataclasses.replace(e, transition=e.transition / share * t) for t in SOFT_PLAY]
+        else:
+            out += [dataclasses.replace(e, transition=t) for t in SOFT_PLAY]
+    if isinstance(e, (Backlash, JointCompliance, LoadCompliance)) and j in play_pool and e != play_pool[j]:
+        out += [play_pool[j]] + [dataclasses.replace(play_pool[j], transition=t) for t in SOFT_PLAY]
     return out
 
 
-def _refine(c, trial, chosen, load_pool, model, meas, loss, folds, x_ref):
-    """Swap the accepted cause for a richer form of it when held-out poses say so (paired test)."""
-    for alt in _refinements(c.effect, load_pool):
+def _refine(c, trial, chosen, load_pool, play_pool, model, meas, loss, folds, x_ref):
+    """Swap the accepted cause for a richer form of it when held-out poses say so: among the forms that are
+    significantly better than it (paired test), the best on held-out poses."""
+    best = None
+    for alt in _refinements(c.effect, load_pool, play_pool):
         try:
             t = identify(model, meas, effects=tuple(chosen + [alt]), loss=loss, folds=folds, x_ref=x_ref)
         except ValueError:
             continue
         p, drop = holdout_gain(trial, t)
-        if p < HOLDOUT_ALPHA and drop > 0:
-            c = Candidate(**{**c.__dict__, "effect": alt, "label": alt.label(model)})
-            trial = t
-    return c, trial
+        if p < HOLDOUT_ALPHA and drop > 0 and (best is None or t.metrics()["holdout_rms_mm"] <
+                                               best[1].metrics()["holdout_rms_mm"]):
+            best = (alt, t)
+    if best is None:
+        return c, trial
+    return Candidate(**{**c.__dict__, "effect": best[0], "label": best[0].label(model)}), best[1]
 
 
 def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, loss, folds, floor):
@@ -426,30 +447,48 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
         Z = U[:, :rank] * root_n  # unit-RMS features
         col = Jq[:, :, j]
         w = (col**2).sum(1)
-        e = (col * R).sum(1) / np.maximum(w, 1e-300)  # the residual as an offset of joint j, per pose
-        y = np.sign(e)
-        weight = np.abs(e) * w / sigma**2
-        weight = weight / max(weight.sum(), 1e-300)
-        start = nominal[:, j] if nominal is not None else e
-        beta0 = np.linalg.lstsq(Z, start / max(np.std(start), 1e-300), rcond=None)[0]
-
-        def loss_grad(b):
-            z = y * (Z @ b)
-            loss = (weight * np.logaddexp(0.0, -z)).sum() + 1e-3 * b @ b
-            g = -(Z.T @ (weight * y * stats.logistic.cdf(-z))) + 2e-3 * b
-            return loss, g
-
-        beta = optimize.minimize(loss_grad, beta0, jac=True, method="L-BFGS-B").x
-        coef = np.zeros(F.shape[1])
-        coef[keep] = root_n * (Vt[:rank].T / s[:rank]) @ beta / scale[keep]
-        load = F @ coef
-        if not np.any(load > 0) or not np.any(load < 0):
-            continue
-        big = float(np.abs(load).max())
-        coef = coef / big  # the load in units of its largest value: the switch needs only its sign
-        out.append(Backlash((j,), transition=Backlash.TRANSITION_SHARE, load_coef=tuple(float(v) for v in coef),
-                            search_dof=rank))
+        start = nominal[:, j] if nominal is not None else (col * R).sum(1) / np.maximum(w, 1e-300)
+        beta = np.linalg.lstsq(Z, start, rcond=None)[0]
+        partial, play = R, None
+        for _ in range(1 + PLAY_PASSES):
+            e = (col * partial).sum(1) / np.maximum(w, 1e-300)  # the residual as an offset of joint j, per pose
+            beta = _switch(Z, e, w / sigma**2, beta)
+            coef = np.zeros(F.shape[1])
+            coef[keep] = root_n * (Vt[:rank].T / s[:rank]) @ beta / scale[keep]
+            load = F @ coef
+            if not np.any(load > 0) or not np.any(load < 0):
+                break
+            play = Backlash((j,), transition=Backlash.TRANSITION_SHARE, search_dof=rank,
+                            load_coef=tuple(float(v) for v in coef / np.abs(load).max()))
+            try:  # fit it, then find the switch again on the residual with the play put back (partial residual)
+                fit = identify(model, meas, effects=tuple(cal.effects) + (play,), folds=0, x_ref=x_ref)
+            except ValueError:
+                break
+            step = 0.5 * fit.effect_values[-1][0] * np.tanh(load / np.abs(load).max() / play.transition)
+            partial = meas.points - fit.predict(meas.joints, meas) + col * step[:, None]
+        if play is not None:
+            out.append(play)
     return out
+
+
+def _switch(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta0: np.ndarray) -> np.ndarray:
+    """Where a play switches: the load direction beta (on unit-RMS features Z) for which b/2 tanh(Z beta / t)
+    best fits the per-pose joint offsets e (weighted least squares), the transition t annealed to sharp."""
+    sw = np.sqrt(weight / max(weight.mean(), 1e-300))
+    beta = beta0 / max(float(np.sqrt(np.mean((Z @ beta0) ** 2))), 1e-300)
+    for t in (0.5, 0.15, 0.05):
+        s0 = np.tanh(Z @ beta / t)
+        b = 2.0 * float((sw**2 * s0 * e).sum() / max((sw**2 * s0 * s0).sum(), 1e-300))
+        def fun(p, t=t):
+            return sw * (e - 0.5 * p[0] * np.tanh(Z @ p[1:] / t))
+
+        def jac(p, t=t):
+            th = np.tanh(Z @ p[1:] / t)
+            return -sw[:, None] * np.column_stack([0.5 * th, (0.5 * p[0] / t) * (1.0 - th**2)[:, None] * Z])
+
+        p = optimize.least_squares(fun, np.r_[b, beta], jac=jac, method="lm", max_nfev=50).x
+        beta = p[1:] * np.sign(p[0]) / max(float(np.sqrt(np.mean((Z @ p[1:]) ** 2))), 1e-300)
+    return beta
 
 
 def _excess(cal: Calibration, floor: float) -> float:
@@ -484,6 +523,8 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
         seen_step |= is_step
         if is_step:
             what = "time order: a step " + _when(c.effect, meas)
+            if c.effect.source == "row":
+                what = "row order (no timestamps): a step " + _when(c.effect, meas) + "; were the rows measured in this order?"
         elif isinstance(c.effect, (LoadCompliance, JointCompliance)):
             what = "the gravity load on the joints"
         else:
@@ -520,17 +561,27 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     load_pool = _load_pool(geo, meas, sigma, x_ref)
     named += list(load_pool.values()) + _distributed(load_pool)
     moving = [j for j in range(model.n_joints) if np.ptp(meas.joints[:, j]) > 1e-3]
-    steps = step_candidates(meas, moving)
+    # a step is a model extension only where the data say when each pose was measured; row order is a guess
+    steps = step_candidates(meas, moving) if meas.timestamp is not None else []
     loaded = sorted(load_pool)
     current, chosen = geo, []
     findings, rejected = [], []
     for round_ in range(MAX_FINDINGS):
         report(0.1 + 0.6 * round_ / MAX_FINDINGS, f"testing {len(named) + len(steps)} candidate causes")
         pool = [e for e in named + steps if e not in chosen]
-        pool += _identified_backlash(current, meas, sigma, x_ref, [j for j in loaded if not any(
-            isinstance(e, Backlash) and e.joints == (j,) for e in chosen)])
-        thresholds = _thresholds(pool, alpha)
         ranked, field_share = screen(current, meas, sigma, pool, x_ref, alpha)
+        thresholds = _thresholds(pool, alpha)
+        # a play whose switch follows the identified load, on the joints where a load-driven cause shows
+        active = {c.effect.joints[0] for c in ranked if len(c.effect.joints) == 1 and c.effect.joints[0] in loaded
+                  and isinstance(c.effect, (JointCompliance, LoadCompliance, Backlash))
+                  and c.log_p <= thresholds[id(c.effect)]}
+        plays = _identified_backlash(current, meas, sigma, x_ref, sorted(j for j in active if not any(
+            isinstance(e, Backlash) and e.joints == (j,) for e in chosen)))
+        play_pool = {b.joints[0]: b for b in plays}
+        if plays:
+            pool += plays
+            thresholds = _thresholds(pool, alpha)
+            ranked = sorted(ranked + screen(current, meas, sigma, plays, x_ref, alpha)[0], key=lambda c: c.bic)
         accepted = False
         for c in ranked:
             if c.log_p > thresholds[id(c.effect)]:
@@ -555,7 +606,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 continue
             c, trial, alike = _best_of_lookalikes(c, trial, ranked, thresholds, model, meas, chosen, loss, folds,
                                                   x_ref)
-            c, trial = _refine(c, trial, chosen, load_pool, model, meas, loss, folds, x_ref)
+            c, trial = _refine(c, trial, chosen, load_pool, play_pool, model, meas, loss, folds, x_ref)
             findings.append(_finding(c, model, current, trial, floor, alike, meas))
             chosen.append(c.effect)
             current, accepted = trial, True
@@ -616,7 +667,7 @@ def _unexplained_finding(model, before, trial, floor, follows) -> dict:
                 "the frame between sessions)")
     fix = (f"a smooth joint-space correction field ({trial[1].describe()}) fitted with the geometry brings it to "
            f"{ha:.3f} mm" if trial else "no smooth correction helps on held-out poses, so the model is not extended")
-    return {"kind": "unexplained", "joints": [], "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
+    return {"kind": "unexplained", "form": "unexplained", "joints": [], "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
             "gain_pct": 100.0 * (hb - ha) / hb, "model_error_before_mm": mb, "model_error_after_mm": ma,
             "follows": [{k: v for k, v in f.items() if k != "effect"} for f in follows],
             "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still {hb / floor:.1f}x the "
@@ -630,7 +681,7 @@ def explain(d: Diagnosis, model: RobotModel) -> str:
     head = (f"After the geometric calibration the robot's held-out error is {g['holdout_rms_mm']:.3f} mm RMS "
             f"against a noise floor of {d.noise_floor_mm:.3f} mm (what a perfect model would leave: {d.noise_note}).")
     ident = d.geometric.identifiability
-    gaps = list(getattr(ident, "unidentifiable", []) or [])
+    gaps = [ident.names[i] if isinstance(i, (int, np.integer)) else i for i in getattr(ident, "unidentifiable", [])]
     caveat = (f" This pose set cannot identify {len(gaps)} parameter(s) ({', '.join(gaps[:6])}"
               f"{', ...' if len(gaps) > 6 else ''}): the model is valid only near the measured poses."
               if gaps else "")

@@ -12,21 +12,24 @@ from .base import Basis, Context, Effect
 
 @dataclass(frozen=True)
 class LinkDeflection(Effect):
-    """Euler-Bernoulli cantilever: the link ending at joint k bends under its own weight and the load it carries.
+    """Euler-Bernoulli cantilever: the link ending at joint k bends under what it carries and its own weight.
 
-    With c = 1/(EI): tip deflection c (F L^3/3 + W L^3/8) and tip rotation c (u x F L^2/2 + u x W L^2/6),
-    F the perpendicular distal load, W the link's own perpendicular weight (Wang et al. 2023, section 5.1).
-    The rotation moves the tool through its lever arm. L grows with a telescopic joint's extension.
-    """
+    With c = 1/(EI), u the link's direction and L its current length (it grows with a telescopic joint):
+    what it carries acts at its tip as the perpendicular force F and the moment M of the distal masses about
+    the tip, giving tip deflection c (F L^3/3 + (M x u) L^2/2) and tip rotation c (u x F L^2/2 + M L); its own
+    weight W gives c (W L^3/8) and c (u x W L^2/6) (Wang et al. 2023, section 5.1). The rotation moves the
+    tool through its lever arm. Two compliances, carried load and own weight, so that mass data that are
+    off by some per cent scale each part on its own."""
 
     kind = "link_deflection"
     needs = "mass"
 
     def parameter_names(self, model):
-        return [f"{model.joint_names[self.joints[0]]}.link_compliance"]
+        n = model.joint_names[self.joints[0]]
+        return [f"{n}.link_compliance", f"{n}.link_compliance_own_weight"]
 
     def parameter_units(self, model):
-        return ["1/(N*mm^2)"]
+        return ["1/(N*mm^2)"] * 2
 
     def basis(self, ctx: Context) -> Basis:
         k = self.joints[0]
@@ -34,35 +37,51 @@ class LinkDeflection(Effect):
         start, end, L = segment(ch, k)
         u = (end - start) / np.maximum(L, 1e-9)[:, None]
         g = gravity_world(ch)
-        M, _ = distal_loads(ch, ctx.meas.payload_kg())
+        M, S = distal_loads(ch, ctx.meas.payload_kg())
         F = M[k][:, None] * g  # N, everything beyond the segment end
+        Mt = _cross(S[k] - M[k][:, None] * end, np.broadcast_to(g, F.shape))  # N*mm, about the tip
         W = (m.mass[k - 1] if k > 0 else 0.0) * np.broadcast_to(g, F.shape)  # the segment's own body
         perp = lambda v: v - (v * u).sum(1, keepdims=True) * u  # noqa: E731
-        Fp, Wp = perp(F), perp(W)
+        Fp, Wp, Mp = perp(F), perp(W), perp(Mt)
         L1 = L[:, None]
-        tip = Fp * L1**3 / 3 + Wp * L1**3 / 8
-        rot = _cross(u, Fp) * L1**2 / 2 + _cross(u, Wp) * L1**2 / 6
-        dp = tip + _cross(rot, ch.p - end)
-        return Basis(None, dp[:, :, None], np.linalg.norm(dp, axis=1),
+        lever = ch.p - end
+        carried_rot = _cross(u, Fp) * L1**2 / 2 + Mp * L1
+        carried = Fp * L1**3 / 3 + _cross(Mp, u) * L1**2 / 2 + _cross(carried_rot, lever)
+        own = Wp * L1**3 / 8 + _cross(_cross(u, Wp) * L1**2 / 6, lever)
+        return Basis(None, np.stack([carried, own], axis=2), np.linalg.norm(carried + own, axis=1),
                      f"bending of the link ending at {m.joint_names[k]} per unit 1/(EI) (mm*N*mm^2)")
 
     def explain(self, model):
         return f"the link ending at {model.joint_names[self.joints[0]]} bends under its own weight and what it carries"
 
 
+def _legendre(s: np.ndarray, degrees) -> np.ndarray:
+    """Legendre polynomials P_k(s) for s in [-1, 1], columns in the order of `degrees`."""
+    P = [np.ones_like(s), s]
+    for k in range(1, max(degrees)):
+        P.append(((2 * k + 1) * s * P[k] - k * P[k - 1]) / (k + 1))
+    return np.column_stack([P[k] for k in degrees])
+
+
 @dataclass(frozen=True)
 class AxisStraightness(Effect):
-    """A linear axis whose carriage wanders sideways: quadratic and cubic in travel, both perpendicular
-    directions (constant and linear parts are the axis' position and direction, already geometric)."""
+    """A linear axis whose guide is not straight (ISO 230-1 error motions of its carriage): sideways
+    straightness in the two perpendicular directions (Legendre P2..P5 of the travel) and the carriage's
+    pitch, yaw (P1..P4) and roll (P1, P2) as it rides the guide, which swing the arm through its lever.
+    Constant and linear sideways parts are the axis' position and direction, already geometric."""
 
     kind = "axis_straightness"
+    LATERAL = (2, 3, 4, 5)
+    TILT = (1, 2, 3, 4)
+    ROLL = (1, 2)
 
     def parameter_names(self, model):
         n = model.joint_names[self.joints[0]]
-        return [f"{n}.straightness_{d}{p}" for d in ("x", "y") for p in (2, 3)]
+        return ([f"{n}.straightness_{d}{p}" for d in ("x", "y") for p in self.LATERAL]
+                + [f"{n}.{a}_{p}" for a in ("pitch", "yaw") for p in self.TILT] + [f"{n}.roll_{p}" for p in self.ROLL])
 
     def parameter_units(self, model):
-        return ["mm"] * 4
+        return ["mm"] * 2 * len(self.LATERAL) + ["rad"] * (2 * len(self.TILT) + len(self.ROLL))
 
     def basis(self, ctx: Context) -> Basis:
         j = self.joints[0]
@@ -70,19 +89,24 @@ class AxisStraightness(Effect):
         s = (ctx.meas.joints[:, j] - 0.5 * (lo + hi)) / (0.5 * (hi - lo))  # -1 .. 1 over the travel
         ch = ctx.chain
         Rj = ch.R[j]
-        x_axis, y_axis = Rj[:, :, 0], Rj[:, :, 1]
-        cols = [ax * (s**p)[:, None] for ax in (x_axis, y_axis) for p in (2, 3)]
-        return Basis(None, np.stack(cols, axis=2), ctx.meas.joints[:, j],
-                     f"{ctx.model.joint_names[j]} travel (mm)")
+        lever = ch.p - ch.o_beta[j]
+        lat = _legendre(s, self.LATERAL)
+        cols = [Rj[:, :, a] * lat[:, [k]] for a in (0, 1) for k in range(len(self.LATERAL))]
+        for a, degrees in ((0, self.TILT), (1, self.TILT), (2, self.ROLL)):
+            swing = _cross(Rj[:, :, a], lever)
+            P = _legendre(s, degrees)
+            cols += [swing * P[:, [k]] for k in range(len(degrees))]
+        return Basis(None, np.stack(cols, axis=2), ctx.meas.joints[:, j], f"{ctx.model.joint_names[j]} travel (mm)")
 
     def explain(self, model):
-        return f"the linear axis {model.joint_names[self.joints[0]]} is not straight"
+        return (f"the linear axis {model.joint_names[self.joints[0]]} is not straight: its carriage wanders "
+                "sideways and tilts as it travels")
 
 
 @dataclass(frozen=True)
 class ThermalDrift(Effect):
     """Error growing with temperature (or, without it, time): a drift of the robot against the tracker
-    (3 translations) and a uniform expansion of the structure about its base (1 strain)."""
+    (3 translations) and a uniform expansion of every link length and the tool (1 strain)."""
 
     kind = "thermal_drift"
     needs = "time"
@@ -119,8 +143,18 @@ class ThermalDrift(Effect):
         N = len(s)
         cols = np.zeros((N, 3, 4))
         cols[:, [0, 1, 2], [0, 1, 2]] = s[:, None]
-        cols[:, :, 3] = (ctx.chain.p - ctx.chain.base_origin) * s[:, None]
+        cols[:, :, 3] = self.growth(ctx.chain) * s[:, None]
         return Basis(None, cols, s, label)
+
+    @staticmethod
+    def growth(chain) -> np.ndarray:
+        """(N, 3) mm the tool point moves when every link length (a, d offsets, tool) grows by 1 (strain):
+        the structure expands, the joint travels and the base placement do not."""
+        n = chain.model.n_joints
+        J = chain.jacobian()
+        x = chain.x
+        lengths = np.r_[np.arange(0, 5 * n, 5), np.arange(2, 5 * n, 5), 5 * n + 6 + np.arange(3)]
+        return J[:, :, lengths] @ x[lengths]
 
     def explain(self, model):
         return "the robot drifts against the tracker as it warms up (or over time)"

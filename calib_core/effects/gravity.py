@@ -138,4 +138,5 @@ def load_mix_for(chain, j: int, absorb: np.ndarray | None = None, Jq: np.ndarray
         return None
     M = np.zeros((Y.shape[1], r))
     M[keep] = Vt[:r].T / scale[keep, None]
-    return M
+    rms = np.sqrt(np.mean((gravity_regressor(chain, j) @ M) ** 2, axis=0))
+    return M / np.where(rms > 0, rms, 1.0)  # each combination of unit RMS load: its parameter is an RMS offset

@@ -83,6 +83,10 @@ class Backlash(Effect):
     def parameter_names(self, model):
         return [f"{model.joint_names[self.joints[0]]}.backlash"]
 
+    def label(self, model):
+        soft = f" soft {self.transition:.2g}" if self.load_coef and self.transition > self.TRANSITION_SHARE else ""
+        return super().label(model) + (" identified load" if self.load_coef else "") + soft
+
     def parameter_units(self, model):
         return [_offset_unit(model, self.joints[0])]
 
