@@ -21,7 +21,9 @@ from scipy import optimize, stats
 
 from . import kinematics as K
 from .effects import Backlash, Context, Effect, JointCompliance, LoadCompliance, SessionStep, candidates
-from .effects.gravity import _as_tuple, gravity_regressor, load_mix_for, payload_load
+from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, _as_tuple, gravity_regressor, lateral_axes,
+                              load_mix_for, payload_load)
+from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import probes, step_candidates
 from .identify import Calibration, effect_bases, identify, tracker_sigma_mm
@@ -46,6 +48,9 @@ MAX_LOOKALIKES = 4
 INDISTINGUISHABLE = 1.02
 """Rivals explaining at least LOOKALIKE of the winner's share are refitted and judged on held-out poses."""
 MAX_FINDINGS = 6
+NOISE_LIKE = 3.0
+"""A residual that follows nothing is taken for noise (the floor re-estimated) only below this multiple of
+the assumed floor; beyond it, it is reported as unexplained."""
 ABSORBED = 1e-3
 """A candidate's unit column keeping less than this norm outside the current model's span is absorbed by it."""
 
@@ -410,6 +415,26 @@ def _load_pool(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: n
     return out
 
 
+def _lateral(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> list[Effect]:
+    """The lateral elasticity of every joint at once: bearings and links tilting under the bending moment."""
+    model = cal.model
+    if model.n_joints < 2:
+        return []
+    _, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
+    ref = K.Chain(model, x_ref, meas.joints, cal.R0)
+    joints, mixes = [], []
+    for j in range(model.n_joints):
+        pair = []
+        for axis in lateral_axes(ref, j):
+            move = _cross(axis, chain.p - ref.o_beta[j])
+            M = load_mix_for(ref, j, Q, move, sigma, axis=axis, max_terms=MAX_LATERAL_TERMS)
+            pair.append(() if M is None else _as_tuple(M))
+        if any(pair):
+            joints.append(j)
+            mixes.append(tuple(pair))
+    return [LateralCompliance(tuple(joints), load_mix=tuple(mixes))] if len(joints) > 1 else []
+
+
 def _distributed(load_pool: dict[int, LoadCompliance]) -> list[Effect]:
     """Compliance of every loaded joint at once, load identified: elasticity spread over the whole arm."""
     if len(load_pool) < 2:
@@ -559,7 +584,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     notes += more
     x_ref = geo.x
     load_pool = _load_pool(geo, meas, sigma, x_ref)
-    named += list(load_pool.values()) + _distributed(load_pool)
+    named += list(load_pool.values()) + _distributed(load_pool) + _lateral(geo, meas, sigma, x_ref)
     moving = [j for j in range(model.n_joints) if np.ptp(meas.joints[:, j]) > 1e-3]
     # a step is a model extension only where the data say when each pose was measured; row order is a guess
     steps = step_candidates(meas, moving) if meas.timestamp is not None else []
@@ -588,7 +613,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 continue
             who = {"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
                    "form": c.label}
-            if c.explained < NAMED_SHARE * field_share and not isinstance(c.effect, SessionStep):
+            broad = isinstance(c.effect, SessionStep) or len(c.effect.joints) > 1  # spread over the arm already
+            if c.explained < NAMED_SHARE * field_share and not broad:
                 rejected.append({**who, "why": f"explains {100 * c.explained:.0f} % of the residual where a smooth "
                                                f"field explains {100 * field_share:.0f} %: part of a broader structure"})
                 continue
@@ -625,7 +651,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     if unexplained and _excess(current, floor) < alpha:
         report(0.85, "looking at what the residual left follows")
         follows = _follows(current, meas, sigma, x_ref, alpha, load_pool)
-        if follows or basis != "assumed":
+        ratio = current.metrics()["holdout_rms_mm"] / floor
+        if follows or basis != "assumed" or ratio > NOISE_LIKE:
             trial = None
             fitted = fit_residual_field(model, meas, current, chosen, x_ref, loss=loss, folds=folds)
             if fitted is not None:
@@ -633,7 +660,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 p_gain, drop = holdout_gain(current, t)
                 if p_gain < HOLDOUT_ALPHA and drop > 0:
                     trial = (t, rf)
-            findings.append(_unexplained_finding(model, current, trial, floor, follows))
+            findings.append(_unexplained_finding(model, current, trial, floor, follows, basis))
             if trial is not None:
                 current = trial[0]
         else:
@@ -652,7 +679,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     return d
 
 
-def _unexplained_finding(model, before, trial, floor, follows) -> dict:
+def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
     """The `unexplained` entry: how far above the floor, what the residual follows, what a smooth field gains."""
     hb = before.metrics()["holdout_rms_mm"]
     ha = trial[0].metrics()["holdout_rms_mm"] if trial else hb
@@ -661,10 +688,13 @@ def _unexplained_finding(model, before, trial, floor, follows) -> dict:
     if follows:
         what = "it follows " + "; ".join(f"{f['what']} (explains {f['share_pct']:.0f} %, p = {f['p_value']:.1e})"
                                          for f in follows[:3])
-    else:
+    elif basis == "repeats":
         what = ("it follows nothing we can test (not time order, no joint, not the load, no workspace region) while "
                 "repeated poses agree with each other: look at the measurement setup (instrument, target seating, "
                 "the frame between sessions)")
+    else:
+        what = ("it follows no single thing we can test (not time order, no one joint, not the load, no workspace "
+                "region) but it is far too large to be noise: several causes together, or one outside our vocabulary")
     fix = (f"a smooth joint-space correction field ({trial[1].describe()}) fitted with the geometry brings it to "
            f"{ha:.3f} mm" if trial else "no smooth correction helps on held-out poses, so the model is not extended")
     return {"kind": "unexplained", "form": "unexplained", "joints": [], "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,

@@ -11,13 +11,14 @@ from ..statics import joint_loads
 from ..model import RobotModel
 from .base import Basis, Context, Effect, apply
 from .cartesian_effects import AxisStraightness, LinkDeflection, ThermalDrift
-from .gravity import LoadCompliance
+from .gravity import LateralCompliance, LoadCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale
 from .residual import ResidualField
 from .structure import Probe, SessionStep
 
 CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointError, Backlash, JointScale,
-                                   AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, SessionStep, Probe)}
+                                   AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, LateralCompliance,
+                                   SessionStep, Probe)}
 KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
          "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
          "thermal_drift": ThermalDrift, "unexplained": ResidualField}
@@ -75,5 +76,5 @@ def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
     return cls(**{k: _frozen(v) for k, v in d.items()}), values
 
 
-__all__ = ["effect_state", "effect_from_state", "CLASSES", "KINDS", "LoadCompliance", "Probe", "SessionStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
+__all__ = ["effect_state", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LoadCompliance", "Probe", "SessionStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
            "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "ThermalDrift"]

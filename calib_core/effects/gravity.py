@@ -23,23 +23,31 @@ from .base import Basis, Context, Effect
 MAX_LOAD_TERMS = 6
 """At most this many regressor combinations per joint: a joint's gravity torque over a workspace is a few
 harmonics of the distal joints; more terms only fit noise."""
+MAX_LATERAL_TERMS = 3
+"""The same for each bending moment across a joint (two per joint)."""
 
 
-def gravity_regressor(chain, j: int) -> np.ndarray:
+def gravity_regressor(chain, j: int, axis: np.ndarray | None = None) -> np.ndarray:
     """Y_j (N, m): the gravity load on joint j per unit mass (column 4k) and first moment (4k+1..3) of
-    every body k >= j; N*m per kg and per kg*mm (revolute), N per kg (prismatic)."""
+    every body k >= j; N*m per kg and per kg*mm (revolute), N per kg (prismatic). With `axis` (N, 3), the
+    moment about that axis through the joint instead (a bending moment, for lateral compliance)."""
     g = gravity_world(chain)
     n = chain.model.n_joints
-    z, o = chain.z_axis[j], chain.o_theta[j]
-    if chain.model.prismatic[j]:
+    z, o = (chain.z_axis[j] if axis is None else axis), chain.o_theta[j]
+    if chain.model.prismatic[j] and axis is None:
         col = z @ g
         return np.repeat(col[:, None], n - j, axis=1)
     cols = []
-    gz = _cross(np.broadcast_to(g, z.shape), z)  # g x z_j, (N, 3)
+    gz = _cross(np.broadcast_to(g, z.shape), z)  # g x axis, (N, 3)
     for k in range(j, n):
         cols.append((z * _cross(chain.o_beta[k] - o, np.broadcast_to(g, o.shape))).sum(1)[:, None] / 1000.0)
         cols.append(np.einsum("nab,na->nb", chain.R[k], gz) / 1000.0)
     return np.concatenate(cols, axis=1)
+
+
+def lateral_axes(chain, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """The two axes (N, 3) across joint j's axis about which its bearing and link tilt."""
+    return chain.R[j][:, :, 0], chain.R[j][:, :, 1]
 
 
 def payload_load(chain, payload_kg: np.ndarray, j: int) -> np.ndarray:
@@ -120,11 +128,18 @@ class LoadCompliance(Effect):
 
 
 def load_mix_for(chain, j: int, absorb: np.ndarray | None = None, Jq: np.ndarray | None = None,
-                 sigma: np.ndarray | None = None) -> np.ndarray | None:
+                 sigma: np.ndarray | None = None, axis: np.ndarray | None = None,
+                 max_terms: int = MAX_LOAD_TERMS) -> np.ndarray | None:
     """The regressor combinations M_j (m, r) of joint j that the poses excite, orthogonal to what the
-    current model absorbs (Q, (3N, p) orthonormal, weighted by sigma) when given; None if none is left."""
-    Y = gravity_regressor(chain, j)
-    A0 = Y if absorb is None else (Jq[:, :, j][:, :, None] * Y[:, None, :] / sigma[:, None, None]).reshape(-1, Y.shape[1])
+    current model absorbs (Q, (3N, p) orthonormal, weighted by sigma) when given; None if none is left.
+    Jq is the joint's displacement per unit offset: the joint Jacobian (N, 3, n), or with `axis` the
+    (N, 3) displacement of a unit tilt about that axis."""
+    Y = gravity_regressor(chain, j, axis)
+    if absorb is None:
+        A0 = Y
+    else:
+        move = Jq[:, :, j] if axis is None else Jq
+        A0 = (move[:, :, None] * Y[:, None, :] / sigma[:, None, None]).reshape(-1, Y.shape[1])
     scale = np.linalg.norm(A0, axis=0)
     keep = scale > 1e-9 * max(scale.max(), 1e-300)
     if not keep.any():
@@ -133,10 +148,52 @@ def load_mix_for(chain, j: int, absorb: np.ndarray | None = None, Jq: np.ndarray
     A = A0 if absorb is None else A0 - absorb @ (absorb.T @ A0)
     ref = np.linalg.svd(A0, compute_uv=False)[0]
     _, s, Vt = np.linalg.svd(A, full_matrices=False)
-    r = int(min(MAX_LOAD_TERMS, (s > 1e-2 * ref).sum()))
+    r = int(min(max_terms, (s > 1e-2 * ref).sum()))
     if r == 0:
         return None
     M = np.zeros((Y.shape[1], r))
     M[keep] = Vt[:r].T / scale[keep, None]
-    rms = np.sqrt(np.mean((gravity_regressor(chain, j) @ M) ** 2, axis=0))
+    rms = np.sqrt(np.mean((gravity_regressor(chain, j, axis) @ M) ** 2, axis=0))
     return M / np.where(rms > 0, rms, 1.0)  # each combination of unit RMS load: its parameter is an RMS offset
+
+
+@dataclass(frozen=True)
+class LateralCompliance(Effect):
+    """The joints' bearings and links tilt under the gravity bending moment across each joint's axis (the
+    lateral elasticity of an elastic arm): a rotation about the frame's x and y axes at joint j, linear in
+    the identified load (`load_mix` holds, per joint, the x and y combinations)."""
+
+    kind = "link_deflection"
+    needs = "gravity"
+    load_mix: tuple = ()  # per joint: (mix_x, mix_y)
+
+    def parameter_names(self, model):
+        return [f"{model.joint_names[j]}.tilt_{a}_{i + 1}" for j, mixes in zip(self.joints, self.load_mix)
+                for a, mix in zip("xy", mixes) for i in range(len(mix[0]) if mix else 0)]
+
+    def parameter_units(self, model):
+        return ["rad"] * len(self.parameter_names(model))
+
+    def label(self, model):
+        return super().label(model) + " lateral, identified load"
+
+    def basis(self, ctx: Context) -> Basis:
+        ch = ctx.chain
+        N = len(ch.p)
+        cols = []
+        for j, mixes in zip(self.joints, self.load_mix):
+            lever = ch.p - ch.o_beta[j]
+            for axis, mix in zip(lateral_axes(ch, j), mixes):
+                if not mix:
+                    continue
+                Y = gravity_regressor(ch, j, axis) @ _as_matrix(mix)
+                cols.append(_cross(axis, lever)[:, :, None] * Y[:, None, :])
+        cart = np.concatenate(cols, axis=2) if cols else np.zeros((N, 3, 0))
+        return Basis(None, cart, np.linalg.norm(cart.sum(2), axis=1),
+                     "identified bending moment across " + ",".join(ctx.model.joint_names[j] for j in self.joints))
+
+    def explain(self, model):
+        who = ", ".join(model.joint_names[j] for j in self.joints)
+        return (f"the bearings and links at {who} tilt under the gravity bending moment (lateral elasticity, "
+                "load identified from the data)")
+
