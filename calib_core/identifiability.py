@@ -4,10 +4,15 @@ Column-normalised identification Jacobian, rank by SVD, then a greedy pivoted Gr
 preference order: base pose first (always unknown), then tool, then a, alpha, d, theta of every joint
 in chain order, and beta last, so that beta enters only where it is needed, which is at
 parallel axes (Hayati; Wang et al. 2023, section 4.2: beta instead of d).
+
+`assess` adds what the pose set lacks: the parameters the model's structure can identify (on a rich random
+pose set within the joint limits, cached per model geometry) but this pose set cannot, and the joints that
+never moved.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -16,6 +21,11 @@ NONFUNCTIONAL_TOL = 1e-9
 REDUNDANT_TOL = 1e-3
 """A normalised column whose part orthogonal to the kept ones is below this is redundant: the pose set
 cannot tell it from the kept ones (their condition number would pass ~1e3)."""
+FROZEN_SPAN = 1e-3
+"""A joint whose values span less than this (rad or mm) never moved: its geometry cannot be identified."""
+STRUCTURAL_POSES = 400
+"""Size of the rich random pose set (seed 0, like the twin's identifiable_mask) that defines what the model's
+structure can identify."""
 
 
 @dataclass(frozen=True)
@@ -28,6 +38,26 @@ class Identifiability:
     condition_number: float  # of the column-normalised Jacobian of the identifiable set
     observability_index: float  # Borm & Menq O1 = (prod sigma)^(1/p) / sqrt(m), normalised columns
     singular_values: np.ndarray
+    unidentifiable: list[int] = field(default_factory=list)  # structurally identifiable, not by this pose set
+    frozen_joints: list[str] = field(default_factory=list)  # joints whose values span < FROZEN_SPAN
+    complete: bool = True  # the pose set identifies everything the model's structure can
+
+    def warnings(self) -> list[str]:
+        """Plain sentences on what this pose set cannot tell (empty when complete)."""
+        out = []
+        f = self.frozen_joints
+        if f:
+            who = ", ".join(f)
+            out.append(f"{who} never moved: {'their' if len(f) > 1 else 'its'} geometry cannot be identified and "
+                       "predictions are valid only near the measured poses")
+        u = [self.names[i] for i in self.unidentifiable]
+        if u:
+            shown = ", ".join(u[:12]) + (f" and {len(u) - 12} more" if len(u) > 12 else "")
+            out.append(f"{len(u)} parameter{'s' if len(u) > 1 else ''} cannot be identified from this pose set: "
+                       f"{shown}; {'they are' if len(u) > 1 else 'it is'} left at nominal and predictions "
+                       "away from the measured poses inherit the error; measure poses that move every joint "
+                       "over its range")
+        return out
 
     def to_dict(self) -> dict:
         n = self.names
@@ -39,6 +69,9 @@ class Identifiability:
             "nonfunctional": [n[i] for i in self.nonfunctional],
             "condition_number": self.condition_number,
             "observability_index": self.observability_index,
+            "unidentifiable": [n[i] for i in self.unidentifiable],
+            "frozen_joints": list(self.frozen_joints),
+            "complete": self.complete,
         }
 
 
@@ -81,9 +114,55 @@ def analyse(J: np.ndarray, names: list[str], order: list[int] | None = None) -> 
         for k, i in enumerate(rejected):
             c = np.abs(coef[:, k])
             redundant[i] = [kept[j] for j in np.argsort(-c) if c[j] > 0.05 * c.max()]
-    s = np.sqrt(np.clip(np.linalg.eigvalsh(G[np.ix_(kept, kept)])[::-1], 0.0, None))
+    s = np.sqrt(np.clip(np.linalg.eigvalsh(G[np.ix_(kept, kept)])[::-1], 0.0, None)) if kept else np.zeros(0)
     return Identifiability(
         names=names, identifiable=kept, redundant=redundant, nonfunctional=nonfunctional, rank=len(kept),
-        condition_number=float(s[0] / s[-1]), observability_index=float(np.exp(np.log(s).mean()) / np.sqrt(m)),
+        condition_number=float(s[0] / s[-1]) if len(s) and s[-1] > 0 else float("inf"),
+        observability_index=float(np.exp(np.log(s).mean()) / np.sqrt(m)) if len(s) and s[-1] > 0 else 0.0,
         singular_values=s,
     )
+
+
+_STRUCTURAL: dict[bytes, Identifiability] = {}
+
+
+def _geometry_key(model) -> bytes:
+    parts = [model.geometry, model.prismatic.astype(float), model.limits, model.tool]
+    return b"|".join(np.ascontiguousarray(a, float).tobytes() for a in parts) + repr(model.joint_names).encode()
+
+
+def structural(model) -> Identifiability:
+    """What the model's structure can identify: the analysis on a rich random pose set within the limits
+    (cached per model geometry: the diagnosis identifies the same model dozens of times)."""
+    key = _geometry_key(model)
+    hit = _STRUCTURAL.get(key)
+    if hit is None:
+        from . import kinematics as K
+        from .twin import sample_uniform  # lazy: the twin imports this module
+
+        q = sample_uniform(model, STRUCTURAL_POSES, np.random.default_rng(0))
+        x = K.nominal_vector(model)
+        hit = analyse(K.Chain(model, x, q).jacobian().reshape(-1, len(x)), K.parameter_names(model))
+        if len(_STRUCTURAL) > 256:
+            _STRUCTURAL.clear()
+        _STRUCTURAL[key] = hit
+    return hit
+
+
+def frozen_joints(model, joints: np.ndarray) -> list[str]:
+    """Names of the joints whose values span less than FROZEN_SPAN (rad or mm) over the pose set."""
+    q = np.atleast_2d(np.asarray(joints, float))
+    span = q.max(0) - q.min(0) if len(q) else np.zeros(model.n_joints)
+    return [model.joint_names[j] for j in np.flatnonzero(span < FROZEN_SPAN)]
+
+
+def assess(model, joints: np.ndarray, J: np.ndarray, names: list[str]) -> Identifiability:
+    """`analyse` of the real pose set (joints (N, n), Jacobian J (3N, P)) plus what it lacks against the
+    model's structure: `unidentifiable`, `frozen_joints` and `complete`."""
+    ident = analyse(J, names)
+    ref = structural(model)
+    have = set(ident.identifiable)
+    missing = [i for i in ref.identifiable if i not in have]
+    frozen = frozen_joints(model, joints)
+    return dataclasses.replace(ident, unidentifiable=missing, frozen_joints=frozen,
+                               complete=not missing and not frozen)

@@ -3,6 +3,11 @@
 Pipeline: rigid pre-alignment of the nominal model to the tracker points (the unknown base pose),
 identifiability on the real pose set, weighted / regularised / robust Levenberg-Marquardt on the
 independent parameters, covariance, and k-fold cross-validated held-out error.
+
+A pose set that cannot calibrate anything (fewer than three distinct joint configurations, fewer equations
+than parameters) is refused with a ValueError; one that identifies only part of what the model's structure
+allows (a joint that never moved, too little excitation) is calibrated where it can be and the answer says
+what it cannot tell (`warnings`, `identifiability.unidentifiable`).
 """
 from __future__ import annotations
 
@@ -14,7 +19,7 @@ from scipy.optimize import brentq
 
 from . import kinematics as K
 from .effects import Context, Effect, apply, effect_from_state, effect_state
-from .identifiability import Identifiability, analyse
+from .identifiability import Identifiability, analyse, assess  # noqa: F401 (analyse: public re-export)
 from .io import Measurements
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, RobotModel
 from .solve import Solution, least_squares
@@ -25,6 +30,12 @@ TRACKER_SIGMA_PER_M_MM = 0.006
 PRIOR_STD_MM = 100.0
 PRIOR_STD_RAD = 0.1
 """Default Tikhonov prior toward nominal: weak, it only steadies a poorly excited pose set."""
+DISTINCT_DECIMALS = 9
+"""Joint vectors equal after rounding to this many decimals (rad / mm) are the same configuration."""
+UNCERTAINTY_NOTE = ("std are 1-sigma of the estimates conditional on the identified model being the right one "
+                    "(geometry plus the listed effects, noise weighted by the tracker model and the fitted model "
+                    "error); they do not cover errors of a structure the model lacks. null = not determined by "
+                    "the data and the prior.")
 
 
 def tracker_sigma_mm(points_mm: np.ndarray) -> np.ndarray:
@@ -93,6 +104,13 @@ class Calibration:
     effects: tuple[Effect, ...] = ()
     sigma_mm: np.ndarray | None = None  # (N,) the per-axis weights used: noise and model error
     model_error_mm: float = 0.0  # per-axis std of what the model leaves beyond the measurement noise
+    sigma0_measurement: float | None = None  # sigma0 of the fit weighted by the measurement noise alone
+    prior_scale: float = 1.0  # multiplier of the default prior precision of the joint parameters
+
+    @property
+    def warnings(self) -> list[str]:
+        """Plain sentences on what this calibration cannot vouch for (from the identifiability analysis)."""
+        return self.identifiability.warnings()
 
     @property
     def effect_values(self) -> tuple[np.ndarray, ...]:
@@ -115,6 +133,8 @@ class Calibration:
             "parameters": self.parameters(),
             "metrics": self.metrics(),
             "identifiability": self.identifiability.to_dict(),
+            "uncertainty": {"conditional_on_model": True, "note": UNCERTAINTY_NOTE},
+            "warnings": self.warnings,
             "base_pose": {"position_mm": pb.tolist(), "rotation_matrix": Rb.tolist()},
             "calibrated_model": self.model.to_dict(self.x[: 5 * n].reshape(n, 5), self.x[5 * n + 6:]),
         }
@@ -131,9 +151,12 @@ class Calibration:
 
     def metrics(self) -> dict:
         d = np.linalg.norm(self.solution.residual, axis=1)
-        out = {"n_poses": int(len(d)), "n_parameters": int(len(self.free)), "rms_mm": _rms(d),
+        out = {"n_poses": int(len(d)), "n_parameters": int(len(self.solution.x)),
+               "n_geometric_parameters": int(len(self.free)), "rms_mm": _rms(d),
                "mean_mm": float(d.mean()), "max_mm": float(d.max()), "sigma0": float(np.sqrt(self.solution.s2)),
                "model_error_mm": self.model_error_mm,
+               "sigma0_measurement": self.sigma0_measurement if self.sigma0_measurement is not None
+               else float(np.sqrt(self.solution.s2)),
                "iterations": self.solution.iterations, "converged": self.solution.converged}
         if self.holdout_residual_mm is not None:
             out["holdout_rms_mm"] = _rms(self.holdout_residual_mm)
@@ -157,21 +180,27 @@ class Calibration:
         sel = [pos.get(ib + k) for k in range(3)]
         if all(s is not None for s in sel):
             rot_cov = E @ self.solution.cov[np.ix_(sel, sel)] @ E.T
+            bad = not np.all(np.isfinite(self.solution.std[sel]))
             for k in range(3):
-                std[ib + k] = float(np.sqrt(rot_cov[k, k]))
+                std[ib + k] = np.inf if bad else float(np.sqrt(max(rot_cov[k, k], 0.0)))
         out = []
         for i in self.free:
             scale = an if ang[i] else ls
             out.append({"name": self.names[i], "value": float(values[i] / scale),
                         "nominal": float(_nominal(m)[i] / scale) if i < 5 * n or i >= ib + 3 else None,
-                        "std": float(std[i] / scale), "unit": m.angle_unit if ang[i] else m.length_unit})
+                        "std": _finite(std[i] / scale), "unit": m.angle_unit if ang[i] else m.length_unit})
         k = len(self.free)
         for e in self.effects:
             for name, unit in zip(e.parameter_names(m), e.parameter_units(m)):
                 out.append({"name": name, "value": float(self.solution.x[k]), "nominal": 0.0,
-                            "std": float(self.solution.std[k]), "unit": unit, "effect": e.kind})
+                            "std": _finite(self.solution.std[k]), "unit": unit, "effect": e.kind})
                 k += 1
         return out
+
+
+def _finite(v: float) -> float | None:
+    """A std for JSON: None where the parameter is undetermined (inf)."""
+    return float(v) if np.isfinite(v) else None
 
 
 def _nominal(model: RobotModel) -> np.ndarray:
@@ -198,8 +227,11 @@ def _euler_and_jacobian(small: np.ndarray, R0: np.ndarray, h: float = 1e-7):
     return e0, E
 
 
-def _prior_std(model: RobotModel) -> np.ndarray:
+def _prior_std(model: RobotModel, prior_scale: float = 1.0) -> np.ndarray:
+    """Prior std toward nominal; prior_scale multiplies the precision of the joint parameters (base and tool
+    keep theirs: the registration is always identified)."""
     std = np.where(K.angular_mask(model), PRIOR_STD_RAD, PRIOR_STD_MM)
+    std[: 5 * model.n_joints] /= np.sqrt(prior_scale)
     std[5 * model.n_joints: 5 * model.n_joints + 6] = np.inf  # the base pose is unknown: no prior
     return std
 
@@ -242,12 +274,13 @@ def effect_bases(model, meas, effects, x, R0) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(bq, axis=2), np.concatenate(bp, axis=2)
 
 
-def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None) -> Solution:
+def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None,
+         prior_scale: float = 1.0) -> Solution:
     """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian."""
     q, y = meas.joints, meas.points
     p_geo = len(idx)
     K_eff = 0 if bases is None else bases[0].shape[2]
-    geo_std = _prior_std(model)[idx] if regularize else np.full(p_geo, np.inf)
+    geo_std = _prior_std(model, prior_scale)[idx] if regularize else np.full(p_geo, np.inf)
     prior_std = np.r_[geo_std, effect_prior] if effect_prior is not None else np.r_[geo_std, np.full(K_eff, np.inf)]
 
     def residual_jac(xs):
@@ -293,22 +326,37 @@ def identify(
     regularize: bool = True,
     folds: int = 5,
     x_ref: np.ndarray | None = None,
+    prior_scale: float = 1.0,
 ) -> Calibration:
     """Identify the independent geometric parameters (restricted to names/prefixes in `free` if given)
     jointly with the parameters of `effects`.
 
     sigma per pose comes from the CSV's `sigma` column or the laser-tracker model; `loss` is None,
     'huber' or 'cauchy'; `folds` > 1 adds k-fold cross-validated held-out distances. Effect bases are
-    evaluated on the geometry `x_ref` (default: a geometric-only fit of the same data).
+    evaluated on the geometry `x_ref` (default: a geometric-only fit of the same data). `prior_scale`
+    multiplies the precision of the default prior toward nominal of the joint parameters (> 1: a stronger
+    pull to nominal; with regularize=True only).
+
+    Raises ValueError when the pose set cannot calibrate: fewer than three distinct joint configurations
+    or fewer equations than parameters. A pose set that identifies less than the model's structure allows
+    is calibrated where it can be; `warnings` and `identifiability` say what it cannot tell.
     """
     n_min = 3
     if meas.n_poses < n_min:
         raise ValueError(f"need at least {n_min} poses, got {meas.n_poses}")
+    if not prior_scale > 0:
+        raise ValueError(f"prior_scale must be positive, got {prior_scale}")
+    n_distinct = len(np.unique(np.round(meas.joints, DISTINCT_DECIMALS), axis=0))
+    if n_distinct < n_min:
+        what = (f"all {meas.n_poses} poses are the same joint configuration" if n_distinct == 1 else
+                f"the {meas.n_poses} poses are only {n_distinct} distinct joint configurations")
+        raise ValueError(f"{what}: a calibration needs at least {n_min} different poses (better: dozens spread "
+                         "over every joint's range); measure more poses")
     sigma = meas.sigma if meas.sigma is not None else tracker_sigma_mm(meas.points)
     x0, R0 = prealign(model, meas)
     names = K.parameter_names(model)
     J = K.Chain(model, x0, meas.joints, R0).jacobian().reshape(-1, len(x0))
-    ident = analyse(J, names)
+    ident = assess(model, meas.joints, J, names)
     idx = _select(names, ident, free)
     n_eff = sum(len(e.parameter_names(model)) for e in effects)
     if 3 * meas.n_poses <= len(idx) + n_eff:
@@ -317,24 +365,26 @@ def identify(
     bases = None
     if effects:
         if x_ref is None:
-            geo = _fit(model, meas, sigma, x0, R0, idx, loss, regularize)
+            geo = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, prior_scale=prior_scale)
             x_ref = x0.copy()
             x_ref[idx] = geo.x
         bases = effect_bases(model, meas, effects, x_ref, R0)
     eprior = _effect_prior(model, effects)
-    sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior)
+    sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, prior_scale=prior_scale)
+    sigma0_measurement = float(np.sqrt(sol.s2))
     s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
     if s_model > 0.0:  # weight by measurement noise plus what the model leaves, then solve again
         sigma = np.sqrt(sigma**2 + s_model**2)
-        sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x)
+        sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x,
+                   prior_scale=prior_scale)
     x = x0.copy()
     x[idx] = sol.x[: len(idx)]
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
                       point_ids=list(meas.point_ids), effects=tuple(effects), sigma_mm=sigma,
-                      model_error_mm=s_model)
+                      model_error_mm=s_model, sigma0_measurement=sigma0_measurement, prior_scale=prior_scale)
     if folds > 1 and meas.n_poses >= 2 * folds:
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
-                                                 eprior)
+                                                 eprior, prior_scale=prior_scale)
     return cal
 
 
@@ -344,14 +394,15 @@ def fold_ids(n_poses: int, folds: int) -> np.ndarray:
 
 
 def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases=None,
-                   effect_prior=None) -> np.ndarray:
+                   effect_prior=None, prior_scale: float = 1.0) -> np.ndarray:
     """Distance (mm) of every pose to the model fitted on the other folds."""
     assign = fold_ids(meas.n_poses, folds)
     out = np.empty(meas.n_poses)
     for k in range(folds):
         train, test = assign != k, assign == k
         sub = None if bases is None else (bases[0][train], bases[1][train])
-        sol = _fit(model, meas.subset(train), sigma[train], x0, R0, idx, loss, regularize, sub, effect_prior)
+        sol = _fit(model, meas.subset(train), sigma[train], x0, R0, idx, loss, regularize, sub, effect_prior,
+                   prior_scale=prior_scale)
         x = x0.copy()
         x[idx] = sol.x[: len(idx)]
         q = meas.joints[test]

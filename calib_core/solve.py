@@ -3,7 +3,17 @@
 The problem is `r(x) = (measured - predicted) / sigma`, three rows per pose, with an analytic Jacobian.
 Tikhonov rows `(x - x_prior) / prior_std` pull toward the nominal model; a robust loss (Huber or Cauchy)
 down-weights whole poses by iteratively re-weighted least squares on the pose's residual norm.
-Covariance: s^2 (J'WJ + L)^-1 J'WJ (J'WJ + L)^-1 with s^2 = |r|^2 / (m - p), not scipy's half cost.
+Covariance: s^2 (J'WJ + L)^-1 J'WJ (J'WJ + L)^-1 with s^2 = |r|^2 / (m - p), not scipy's half cost
+(p: the number of directions the data and prior determine).
+
+Units: parameters of very different size live side by side (mm, rad, an effect in 1/(N*mm^2) ~ 1e-11), so
+the damped step and the covariance are computed in Jacobi-scaled variables z = D x, D = the column norms of
+the weighted Jacobian plus prior (the root of diag(J'WJ + L)), and mapped back. Results are then invariant to
+the units of the parameters: multiplying a column by c and dividing its parameter by c changes that
+parameter's std by 1/c and nothing else. A direction that data and prior do not determine (eigenvalue of the
+scaled normal matrix below UNDETERMINED_TOL of the largest) gets no variance in `cov` and an infinite `std`
+for every parameter that takes part in it, flagged in `Solution.undetermined`: never a NaN, never a
+falsely tiny std.
 """
 from __future__ import annotations
 
@@ -16,6 +26,12 @@ ROBUST_K = {"huber": 2.0, "cauchy": 2.4}
 """Tuning constants on the pose residual norm in units of its robust scale (3-D residuals)."""
 OUTLIER_U = 5.0
 """With a robust loss, a pose whose residual exceeds 5 robust sigmas (chi(3): p < 2e-5) is an outlier."""
+UNDETERMINED_TOL = 1e-12
+"""Eigenvalues of the scaled (unit-diagonal) normal matrix below this fraction of the largest are numerically
+zero: a condition number past 1e12, far beyond any direction the data could determine in double precision."""
+UNDETERMINED_SHARE = 1e-6
+"""A parameter whose scaled unit vector has more than this squared share in the undetermined directions is
+itself undetermined (std = inf)."""
 
 
 @dataclass
@@ -25,13 +41,18 @@ class Solution:
     residual: np.ndarray  # (N, 3) unweighted residual measured - predicted at the solution
     weights: np.ndarray  # (N,) final robust weights (1 without a robust loss)
     u: np.ndarray | None  # (N,) residual norm in robust sigmas (only with a robust loss)
-    s2: float  # a-posteriori variance factor |r|^2 / (m - p)
+    s2: float  # a-posteriori variance factor |r|^2 / (m - p), p = the number of determined directions
     iterations: int
     converged: bool
+    undetermined: np.ndarray | None = None  # (p,) bool: data and prior leave the parameter undetermined
 
     @property
     def std(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.cov))
+        """1-sigma of every parameter, conditional on the model; inf where the parameter is undetermined."""
+        s = np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+        if self.undetermined is not None:
+            s = np.where(self.undetermined, np.inf, s)
+        return s
 
     @property
     def outliers(self) -> np.ndarray:
@@ -94,22 +115,24 @@ def least_squares(
 
     w = np.ones(len(inv_s))
     r, rw, A, g, cost = normal_eq(x, w)
-    mu = 1e-4  # Marquardt damping relative to diag(J'WJ + L)
+    mu = 1e-4  # Marquardt damping, relative to the unit diagonal of the scaled normal matrix
     converged, it = False, 0
     for it in range(1, max_iter + 1):
         H = A + np.diag(lam_diag)
-        D = np.diag(H).copy()
-        D[D <= 0] = 1.0
-        try:
-            step = np.linalg.solve(H + mu * np.diag(D), g)
+        Hs, S = _scaled(H)
+        try:  # step in the scaled variables z = D x: (S H S + mu I) dz = S g, dx = S dz
+            step = S * np.linalg.solve(Hs + mu * np.eye(p), S * g)
         except np.linalg.LinAlgError:
+            mu *= 10
+            continue
+        if not np.all(np.isfinite(step)):
             mu *= 10
             continue
         if step @ g <= ftol * cost + atol:  # predicted chi-square decrease: nothing left to gain
             converged = True
             break
         r_new, rw_new, A_new, g_new, cost_new = normal_eq(x + step, w)
-        if cost_new > cost:
+        if not cost_new <= cost:
             mu *= 10.0
             continue
         x, r, rw, A, g, cost = x + step, r_new, rw_new, A_new, g_new, cost_new
@@ -119,11 +142,52 @@ def least_squares(
             if not np.allclose(w_new, w, atol=1e-6):
                 w = w_new
                 r, rw, A, g, cost = normal_eq(x, w)
+    cov1, undetermined, rank = _covariance(A, lam_diag, sandwich=reg)
     m = rw.size
-    dof = max(m - p, 1)
+    dof = max(m - rank, 1)  # an undetermined direction uses up no degree of freedom
     s2 = float((w[:, None] * rw**2).sum() / dof)
-    H = A + np.diag(lam_diag)
-    Hinv = np.linalg.pinv(H)
-    cov = s2 * Hinv @ A @ Hinv if reg else s2 * Hinv
+    cov = s2 * cov1
     u = _standardised(rw) if loss is not None else None
-    return Solution(x=x, cov=cov, residual=r, weights=w, u=u, s2=s2, iterations=it, converged=converged)
+    return Solution(x=x, cov=cov, residual=r, weights=w, u=u, s2=s2, iterations=it, converged=converged,
+                    undetermined=undetermined)
+
+
+def _scaled(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """S H S with S = 1 / sqrt(diag H) (1 where a column is empty): unit diagonal, unit-free."""
+    d = np.sqrt(np.clip(np.diag(H), 0.0, None))
+    S = 1.0 / np.where(d > 0, d, 1.0)
+    return H * S[:, None] * S[None, :], S
+
+
+def covariance(A: np.ndarray, lam_diag: np.ndarray, s2: float, sandwich: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance of the (regularised) least-squares estimate and the mask of undetermined parameters."""
+    cov, undetermined, _ = _covariance(A, lam_diag, sandwich)
+    return s2 * cov, undetermined
+
+
+def _covariance(A: np.ndarray, lam_diag: np.ndarray, sandwich: bool = True) -> tuple[np.ndarray, np.ndarray, int]:
+    """Covariance per unit variance factor, the mask of undetermined parameters, and the rank.
+
+    A = J'WJ, L = diag(lam_diag). With a prior the sandwich s^2 H^-1 A H^-1 (H = A + L), the sampling
+    covariance of the regularised estimator; without, s^2 A^-1. Computed on the Jacobi-scaled H by an
+    eigen-decomposition: directions with eigenvalue below UNDETERMINED_TOL of the largest carry no variance
+    here, and the parameters in them are flagged (their std is inf)."""
+    p = len(lam_diag)
+    if p == 0:
+        return np.zeros((0, 0)), np.zeros(0, bool), 0
+    H = A + np.diag(lam_diag)
+    Hs, S = _scaled(H)
+    e, U = np.linalg.eigh(0.5 * (Hs + Hs.T))
+    top = max(float(e.max()), 0.0)
+    keep = e > UNDETERMINED_TOL * top if top > 0 else np.zeros(p, bool)
+    Uk = U[:, keep]
+    Hinv_s = (Uk / e[keep]) @ Uk.T  # pseudo-inverse on the determined subspace
+    if sandwich:
+        As = A * S[:, None] * S[None, :]
+        cov_s = Hinv_s @ As @ Hinv_s
+    else:
+        cov_s = Hinv_s
+    cov = cov_s * S[:, None] * S[None, :]
+    cov = 0.5 * (cov + cov.T)
+    undetermined = (U[:, ~keep] ** 2).sum(1) > UNDETERMINED_SHARE
+    return cov, undetermined, int(keep.sum())

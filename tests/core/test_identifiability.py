@@ -74,3 +74,30 @@ def test_poor_pose_set_has_worse_conditioning(seed):
     x = K.nominal_vector(model)
     poor = analyse(K.Chain(model, x, q).jacobian().reshape(-1, len(x)), K.parameter_names(model))
     assert poor.condition_number > 5 * rich.condition_number
+
+
+def test_structural_analysis_is_cached_per_geometry():
+    from calib_core.identifiability import structural
+
+    a, b = structural(parse_model(spray7())), structural(parse_model(spray7()))
+    assert a is b and a.rank == 27
+    doc = spray7()
+    doc["joints"][3]["a"] = 1400.0
+    assert structural(parse_model(doc)) is not a
+
+
+def test_assess_names_what_the_pose_set_lacks(seed):
+    from calib_core.identifiability import assess
+
+    model = parse_model(spray7())
+    x = K.nominal_vector(model)
+    names = K.parameter_names(model)
+    q = sample_uniform(model, 120, np.random.default_rng(seed))
+    full = assess(model, q, K.Chain(model, x, q).jacobian().reshape(-1, len(x)), names)
+    assert full.complete and full.unidentifiable == [] and full.warnings() == []
+    q[:, 3] = 0.2  # J4 frozen
+    poor = assess(model, q, K.Chain(model, x, q).jacobian().reshape(-1, len(x)), names)
+    d = poor.to_dict()
+    assert d["frozen_joints"] == ["J4"] and not d["complete"] and d["unidentifiable"]
+    assert len(d["unidentifiable"]) == 27 - d["rank"]
+    assert poor.warnings()[0].startswith("J4 never moved")

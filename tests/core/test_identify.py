@@ -59,7 +59,12 @@ def test_noisy_estimates_lie_within_reported_uncertainty(robot, seed):
     chi2 = err @ np.linalg.solve(cal.solution.cov[np.ix_(keep, keep)], err)
     assert chi2 < stats.chi2.ppf(0.9999, len(keep)), (seed, chi2, len(keep))
     m = cal.metrics()
-    assert 0.8 < m["sigma0"] < 1.6  # the noise model (tracker + repeatability) is about right
+    # sigma0 after the model-error re-weighting is 1 by construction (it could never fail a 0.8..1.6 check);
+    # what can fail is sigma0 under the tracker model alone against the twin's real noise (tracker + repeatability)
+    assert abs(m["sigma0"] - 1.0) < 0.02 or (m["model_error_mm"] == 0.0 and m["sigma0"] <= 1.0)
+    st = cal.sigma_mm if m["model_error_mm"] == 0.0 else np.sqrt(cal.sigma_mm**2 - m["model_error_mm"] ** 2)
+    expected = np.sqrt(np.mean((st**2 + twin.repeatability_mm**2) / st**2))
+    assert abs(m["sigma0_measurement"] / expected - 1) < 0.15, (seed, m["sigma0_measurement"], expected)
     assert m["rms_mm"] <= m["holdout_rms_mm"] < 1.5 * twin.noise_rms_mm(meas.points)
 
 
@@ -133,3 +138,170 @@ def test_answer_has_units_and_values_in_model_units(seed):
     assert p["J3.alpha"]["unit"] == "deg" and abs(p["J3.alpha"]["value"] + 90) < 3
     assert set(d["metrics"]) >= {"n_poses", "rms_mm", "max_mm", "holdout_rms_mm"}
     assert np.allclose(parse_model(d["calibrated_model"]).geometry[3], cal.x[15:20])
+
+
+# --- honest uncertainty for every model: unit-invariant, never NaN, never falsely tiny -----------------
+
+def _linear_problem(rng, N=60, p=6):
+    """A linear point problem r = y - A x, noise 0.05 per axis: A (N, 3, p), y (N, 3), sigma (N,)."""
+    A = rng.normal(size=(N, 3, p))
+    sigma = np.full(N, 0.05)
+    y = A @ rng.normal(size=p) + rng.normal(0, 0.05, (N, 3))
+    return A, y, sigma
+
+
+def _solve(A, y, sigma, **kw):
+    from calib_core.solve import least_squares
+
+    return least_squares(lambda x: (y - A @ x, A), np.zeros(A.shape[2]), sigma, **kw)
+
+
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_rescaling_a_parameter_unit_changes_only_its_std(seed, with_prior):
+    """Multiply one Jacobian column by 1e11 (the parameter in a unit 1e11 smaller, like an effect in
+    1/(N*mm^2)): that parameter's value and std scale by 1e-11, every other std stays the same."""
+    rng = np.random.default_rng(seed)
+    A, y, sigma = _linear_problem(rng)
+    c = 1e11
+    B = A.copy()
+    B[:, :, 2] *= c
+    prior_std = np.array([np.inf, 10.0, 0.3, np.inf, 5.0, 1.0])
+    kw_a = dict(prior=np.zeros(6), prior_std=prior_std) if with_prior else {}
+    kw_b = dict(prior=np.zeros(6), prior_std=prior_std * np.r_[1, 1, 1 / c, 1, 1, 1]) if with_prior else {}
+    a, b = _solve(A, y, sigma, **kw_a), _solve(B, y, sigma, **kw_b)
+    assert np.all(np.isfinite(a.std)) and np.all(np.isfinite(b.std))
+    scale = np.r_[1, 1, c, 1, 1, 1]
+    np.testing.assert_allclose(b.x * scale, a.x, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(b.std * scale, a.std, rtol=1e-6)
+
+
+def test_undetermined_direction_is_flagged_not_nan(seed):
+    """Two identical columns and no prior: both parameters undetermined (inf std, flagged), the others exact."""
+    rng = np.random.default_rng(seed)
+    A, y, sigma = _linear_problem(rng)
+    A[:, :, 4] = A[:, :, 1]
+    sol = _solve(A, y, sigma)
+    assert not np.isnan(sol.std).any() and not np.isnan(sol.cov).any()
+    assert list(np.flatnonzero(~np.isfinite(sol.std))) == [1, 4] and list(np.flatnonzero(sol.undetermined)) == [1, 4]
+    ref = _solve(np.delete(A, 4, axis=2), y, sigma)  # the same problem without the duplicate
+    np.testing.assert_allclose(sol.std[[0, 2, 3, 5]], ref.std[[0, 2, 3, 4]], rtol=1e-6)
+
+
+def test_ridge_prior_on_many_columns_gives_no_nan_std(seed):
+    """More parameters than equations, most under a ridge prior (a big smoothing field): every std finite."""
+    rng = np.random.default_rng(seed)
+    A, y, sigma = _linear_problem(rng, N=15, p=80)
+    A[:, :, 3:] *= rng.choice([1e-8, 1.0, 1e6], 77)  # wildly different column scales
+    prior_std = np.r_[np.inf, np.inf, np.inf, np.full(77, 0.5)]
+    sol = _solve(A, y, sigma, prior=np.zeros(80), prior_std=prior_std)
+    assert np.all(np.isfinite(sol.std)) and np.all(sol.std > 0), sol.std
+
+
+def test_effect_in_tiny_units_keeps_the_geometric_std(seed):
+    """Link bending (1/(N*mm^2), ~1e-11) in the model: the geometric std stay those of the geometric fit
+    (they collapsed to ~1e-20 mm with an unscaled pseudo-inverse); a ridge field gives no NaN."""
+    from calib_core.effects.cartesian_effects import LinkDeflection
+    from calib_core.effects.residual import ResidualField
+
+    model = parse_model(spray7())
+    meas = Twin(model, seed).measure(n=150)
+    geo = identify(model, meas, folds=0)
+    g = {p["name"]: p["std"] for p in geo.parameters()}
+    for k in (3, 4):
+        cal = identify(model, meas, effects=(LinkDeflection((k,)),), folds=0, x_ref=geo.x)
+        p = {q["name"]: q["std"] for q in cal.parameters()}
+        for name, s in g.items():
+            assert p[name] > 0.5 * s, (seed, k, name, p[name], s)
+        assert 0 < p[f"J{k + 1}.link_compliance"] < 1e-9
+        m = cal.metrics()
+        assert m["n_parameters"] == m["n_geometric_parameters"] + 1 == len(cal.free) + 1
+    field = identify(model, meas, effects=(ResidualField((), length_scale=1.0, prior_std=50.0),), folds=0,
+                     x_ref=geo.x)
+    assert np.all(np.isfinite(field.solution.std)), (seed, np.isnan(field.solution.std).sum())
+    assert all(p["std"] is not None and np.isfinite(p["std"]) for p in field.parameters())
+
+
+def test_sigma0_checks_the_noise_model(seed):
+    """sigma0 of the fit weighted by the tracker model alone is ~1 when the twin's noise is the tracker's,
+    and grows when the robot adds repeatability the model does not know; the fitted model error then
+    recovers that repeatability and the final sigma0 is 1."""
+    model = parse_model(spray7())
+    ok = identify(model, Twin(model, seed, repeatability_mm=0.0).measure(n=150), folds=0).metrics()
+    assert 0.85 < ok["sigma0_measurement"] < 1.15, (seed, ok)
+    assert ok["model_error_mm"] < 0.015, (seed, ok)
+    bad = identify(model, Twin(model, seed, repeatability_mm=0.1).measure(n=150), folds=0).metrics()
+    assert bad["sigma0_measurement"] > 1.8, (seed, bad)
+    assert 0.08 < bad["model_error_mm"] < 0.12, (seed, bad)
+    assert abs(bad["sigma0"] - 1.0) < 0.02
+
+
+def test_answer_says_std_are_conditional_and_counts_all_parameters(seed):
+    from calib_core.effects.joint_effects import JointCompliance
+
+    model = parse_model(spray7())
+    meas = Twin(model, seed).measure(n=100, payload_kg=[0.0, 20.0])
+    d = identify(model, meas, effects=(JointCompliance((2,)), JointCompliance((3,))), folds=0).to_dict()
+    assert d["uncertainty"]["conditional_on_model"] is True and d["uncertainty"]["note"]
+    assert d["metrics"]["n_parameters"] == d["metrics"]["n_geometric_parameters"] + 2 == len(d["parameters"])
+    assert d["warnings"] == [] and d["identifiability"]["complete"] is True
+
+
+def test_prior_scale_pulls_toward_nominal(seed):
+    model = parse_model(spray7())
+    meas = Twin(model, seed).measure(n=20)
+    default = identify(model, meas, folds=0)
+    same = identify(model, meas, folds=0, prior_scale=1.0)
+    strong = identify(model, meas, folds=0, prior_scale=1e10)  # prior std 1 um, 1 urad
+    np.testing.assert_array_equal(default.x, same.x)
+    n = model.n_joints
+    nominal = model.geometry.ravel()
+    assert np.abs(strong.x[: 5 * n] - nominal).max() < 0.2 * np.abs(default.x[: 5 * n] - nominal).max()
+
+
+# --- refuse what cannot be calibrated, say what a poor pose set cannot tell -------------------------------
+
+def test_identical_poses_are_refused_by_name(seed):
+    model = parse_model(spray7())
+    twin = Twin(model, seed)
+    q = np.repeat(twin.sample_joints(1), 40, axis=0)
+    with pytest.raises(ValueError, match="all 40 poses are the same joint configuration"):
+        identify(model, twin.measure(q))
+    q[:20] = twin.sample_joints(1)  # two configurations are still not a calibration
+    with pytest.raises(ValueError, match="only 2 distinct joint configurations"):
+        identify(model, twin.measure(q))
+
+
+def test_only_the_rail_moving_is_flagged(seed):
+    model = parse_model(spray7())
+    twin = Twin(model, seed)
+    q = np.repeat(twin.sample_joints(1), 100, axis=0)
+    q[:, 0] = twin.sample_joints(100)[:, 0]
+    cal = identify(model, twin.measure(q))
+    ident = cal.to_dict()["identifiability"]
+    assert ident["complete"] is False and len(ident["unidentifiable"]) >= 10
+    assert ident["frozen_joints"] == ["J2", "J3", "J4", "J5", "J6", "J7"]
+    w = cal.to_dict()["warnings"]
+    assert any(s.startswith("J2, J3, J4, J5, J6, J7 never moved") for s in w), w
+    assert any(f"{len(ident['unidentifiable'])} parameters cannot be identified" in s for s in w), w
+
+
+@pytest.mark.parametrize("robot,joint", [("spray7", 2), ("spray7", 5), ("arm6", 1)])
+def test_a_frozen_joint_is_named(seed, robot, joint):
+    model = parse_model(ROBOTS[robot]())
+    twin = Twin(model, seed)
+    q = twin.sample_joints(150)
+    q[:, joint] = q[0, joint]
+    cal = identify(model, twin.measure(q))
+    ident = cal.identifiability.to_dict()
+    name = model.joint_names[joint]
+    assert ident["frozen_joints"] == [name] and ident["complete"] is False
+    assert ident["unidentifiable"], ident
+    assert any(s.startswith(f"{name} never moved") for s in cal.warnings), cal.warnings
+
+
+def test_rich_pose_set_is_complete_and_silent(seed):
+    model = parse_model(arm6())
+    cal = identify(model, Twin(model, seed).measure(n=150))
+    ident = cal.to_dict()["identifiability"]
+    assert ident["complete"] is True and ident["unidentifiable"] == [] and ident["frozen_joints"] == []
+    assert cal.to_dict()["warnings"] == []

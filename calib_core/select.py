@@ -1,0 +1,116 @@
+"""Choose the model's size on held-out evidence (cross-validated model selection, as in FIGAROH).
+
+Nested candidates, simplest first:
+  registration  the nominal geometry placed in the tracker frame: base pose + tool point only;
+  offsets       + the joint zero offsets (theta of a revolute joint, d of a prismatic one);
+  full          + every geometric parameter the pose set identifies;
+the last two each with Tikhonov priors toward nominal of increasing strength (`PRIOR_SCALES` multiplies the
+default prior precision of the joint parameters: 1 = today's weak prior, 1e4 = 100x smaller prior std).
+
+Each candidate is scored by the k-fold held-out RMS that `identify(..., folds=k)` computes (the same fold
+assignment for all). The best score wins, but with the one-standard-error rule: the simplest candidate whose
+held-out RMS is within the fold-to-fold standard error of the best is chosen. Registration is always a
+candidate, so the chosen model's held-out RMS is never worse than registration alone; when registration is
+chosen, calibrating the geometry does not help on this data and `helps` is False.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .identify import Calibration, fold_ids, identify
+from .io import Measurements
+from .model import RobotModel
+
+PRIOR_SCALES = (1e4, 1e2, 1.0)
+"""Prior strengths tried for the richer candidates, strongest (simplest) first."""
+REGISTRATION = ("base", "tool")
+
+
+def joint_offsets(model: RobotModel) -> tuple[str, ...]:
+    """Names of the joint zero offsets: theta of every revolute joint, d of every prismatic one."""
+    return tuple(f"{j}.{'d' if p else 'theta'}" for j, p in zip(model.joint_names, model.prismatic))
+
+
+@dataclass
+class GeometrySelection:
+    free: tuple[str, ...] | None  # names / prefixes for identify(free=...) of the chosen model; None = all
+    prior_scale: float  # identify(prior_scale=...) of the chosen model
+    chosen_label: str
+    table: list[dict]  # every candidate: label, free, prior_scale, n_parameters, holdout_rms_mm, fold_se_mm
+    registration_holdout_rms_mm: float
+    calibration: Calibration  # the chosen model, identified on all the data
+    helps: bool  # the chosen model predicts held-out poses better than registration alone
+    note: str = ""
+    folds: int = 5
+    best_label: str = ""  # the candidate with the smallest held-out RMS (before the one-SE rule)
+    calibrations: dict[str, Calibration] = field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict:
+        return {"chosen": self.chosen_label, "best": self.best_label, "prior_scale": self.prior_scale,
+                "free": list(self.free) if self.free is not None else None, "folds": self.folds,
+                "helps": self.helps, "note": self.note,
+                "registration_holdout_rms_mm": self.registration_holdout_rms_mm,
+                "candidates": [{k: v for k, v in row.items() if k != "free"} for row in self.table]}
+
+
+def _fold_stats(d: np.ndarray, folds: int) -> tuple[float, float]:
+    """Held-out RMS over all poses and the standard error of the per-fold RMS values."""
+    assign = fold_ids(len(d), folds)
+    per = np.array([np.sqrt(np.mean(d[assign == k] ** 2)) for k in range(folds)])
+    return float(np.sqrt(np.mean(d**2))), float(per.std(ddof=1) / np.sqrt(folds))
+
+
+def candidates(model: RobotModel) -> list[tuple[str, tuple[str, ...] | None, float]]:
+    """(label, free, prior_scale) from the simplest to the richest."""
+    out = [("registration", REGISTRATION, 1.0)]
+    for label, free in (("offsets", REGISTRATION + joint_offsets(model)), ("full", None)):
+        for s in PRIOR_SCALES:
+            out.append((f"{label}, prior x{s:g}" if s != 1.0 else label, free, s))
+    return out
+
+
+def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None = None,
+                    folds: int = 5) -> GeometrySelection:
+    """Pick the geometric model's size (and prior strength) by k-fold held-out RMS with the one-SE rule.
+
+    Raises ValueError when the data cannot be cross-validated (fewer than 4 poses) or even registration
+    cannot be identified."""
+    k = min(folds, meas.n_poses // 2)
+    if k < 2:
+        raise ValueError(f"{meas.n_poses} poses are too few to judge a model on held-out poses")
+    table, cals = [], {}
+    for label, free, scale in candidates(model):
+        try:
+            cal = identify(model, meas, free=free, loss=loss, folds=k, prior_scale=scale)
+        except ValueError as e:
+            if label == "registration":
+                raise
+            table.append({"label": label, "free": free, "prior_scale": scale, "n_parameters": None,
+                          "holdout_rms_mm": None, "fold_se_mm": None, "skipped": str(e)})
+            continue
+        rms, se = _fold_stats(cal.holdout_residual_mm, k)
+        n_par = int(len(cal.free))
+        if any(r["n_parameters"] == n_par and r["prior_scale"] == scale and r["holdout_rms_mm"] == rms
+               for r in table):
+            continue  # the same model as a simpler candidate (e.g. no offset is identifiable)
+        table.append({"label": label, "free": free, "prior_scale": scale, "n_parameters": n_par,
+                      "holdout_rms_mm": rms, "fold_se_mm": se})
+        cals[label] = cal
+    scored = [r for r in table if r["holdout_rms_mm"] is not None]
+    best = min(scored, key=lambda r: r["holdout_rms_mm"])
+    limit = best["holdout_rms_mm"] + best["fold_se_mm"]
+    chosen = next(r for r in scored if r["holdout_rms_mm"] <= limit)  # scored is simplest first
+    reg = scored[0]["holdout_rms_mm"]
+    helps = chosen["label"] != "registration" and chosen["holdout_rms_mm"] < reg
+    if helps:
+        note = (f"the {chosen['label']} model predicts held-out poses at {chosen['holdout_rms_mm']:.3f} mm RMS "
+                f"against {reg:.3f} mm with registration alone (base and tool only)")
+    else:
+        note = (f"calibrating the geometry does not help on this data: no richer model beats registration "
+                f"alone (base and tool only, {reg:.3f} mm held-out RMS) by more than the fold-to-fold "
+                f"standard error; keep the nominal geometry")
+    return GeometrySelection(free=chosen["free"], prior_scale=chosen["prior_scale"], chosen_label=chosen["label"],
+                             table=table, registration_holdout_rms_mm=reg, calibration=cals[chosen["label"]],
+                             helps=helps, note=note, folds=k, best_label=best["label"], calibrations=cals)

@@ -1,0 +1,84 @@
+import numpy as np
+import pytest
+
+from calib_core.identify import evaluate
+from calib_core.model import parse_model
+from calib_core.robots import spray7
+from calib_core.select import GeometrySelection, candidates, joint_offsets, select_geometry
+from calib_core.twin import Twin
+
+
+def _check_guarantee(s: GeometrySelection):
+    """The chosen held-out RMS is never worse than registration alone, and the note says which it is."""
+    chosen = next(r for r in s.table if r["label"] == s.chosen_label)
+    assert chosen["holdout_rms_mm"] <= s.registration_holdout_rms_mm
+    assert s.calibration.metrics()["holdout_rms_mm"] == pytest.approx(chosen["holdout_rms_mm"])
+    assert s.helps == (s.chosen_label != "registration")
+    assert ("does not help" in s.note) == (not s.helps)
+    assert all({"label", "n_parameters", "holdout_rms_mm", "fold_se_mm"} <= set(r) for r in s.table)
+
+
+def test_candidates_are_nested():
+    model = parse_model(spray7())
+    assert joint_offsets(model) == ("J1.d", "J2.theta", "J3.theta", "J4.theta", "J5.theta", "J6.d", "J7.theta")
+    c = candidates(model)
+    assert c[0] == ("registration", ("base", "tool"), 1.0) and c[-1] == ("full", None, 1.0)
+
+
+def test_twin_chooses_the_full_model(seed):
+    model = parse_model(spray7())
+    twin = Twin(model, seed)
+    s = select_geometry(model, twin.measure(n=150))
+    _check_guarantee(s)
+    assert s.free is None and s.chosen_label.startswith("full") and s.helps, s.table
+    assert s.calibration.metrics()["holdout_rms_mm"] < 0.05 * s.registration_holdout_rms_mm
+    assert evaluate(s.calibration, twin.measure(n=200))["rms_mm"] < 1.5 * twin.noise_rms_mm(twin.measure(n=50).points)
+    labels = [r["label"] for r in s.table]
+    assert labels[0] == "registration" and len(labels) == len(candidates(model))
+    assert s.to_dict()["chosen"] == s.chosen_label
+
+
+def test_exact_geometry_with_large_noise_keeps_it_simple(seed):
+    """The nominal geometry is right and the noise large: nothing beyond registration / offsets pays off."""
+    model = parse_model(spray7())
+    twin = Twin(model, seed, error_scale=0.0, tool_error_mm=0.0, repeatability_mm=1.0)
+    s = select_geometry(model, twin.measure(n=150))
+    _check_guarantee(s)
+    assert s.free is not None, (seed, s.table)  # registration or offsets, not the full geometry
+
+
+def test_few_poses_keep_it_simple(seed):
+    """12 poses of a robot whose geometry is nominal to ~10 um / 8 urad (below the noise): the full model
+    over-fits; and 8 poses are too few to identify it at all (skipped, said why)."""
+    model = parse_model(spray7())
+    twin = Twin(model, seed, error_scale=0.001, tool_error_mm=0.0)
+    s = select_geometry(model, twin.measure(n=12))
+    _check_guarantee(s)
+    assert s.free is not None, (seed, s.table)
+    s = select_geometry(model, twin.measure(n=8))
+    _check_guarantee(s)
+    assert s.free is not None, (seed, s.table)
+
+
+def test_too_few_poses_to_cross_validate():
+    model = parse_model(spray7())
+    with pytest.raises(ValueError, match="too few"):
+        select_geometry(model, Twin(model, 0).measure(n=3))
+
+
+def test_selection_is_fast(seed):
+    import time
+
+    model = parse_model(spray7())
+    meas = Twin(model, seed).measure(n=150)
+    t = time.perf_counter()
+    select_geometry(model, meas)
+    assert time.perf_counter() - t < 3.0  # ~0.4 s: seven 5-fold identifications
+
+
+def test_skipped_candidates_say_why(seed):
+    model = parse_model(spray7())
+    s = select_geometry(model, Twin(model, seed).measure(n=8))  # 24 equations: the full model cannot be fitted
+    skipped = [r for r in s.table if r.get("skipped")]
+    assert skipped and all(r["label"].startswith("full") and "measure more poses" in r["skipped"] for r in skipped)
+    _check_guarantee(s)
