@@ -15,7 +15,8 @@ import numpy as np  # noqa: E402
 from calib_core.model import parse_model  # noqa: E402
 from calib_core.pipeline import calibrate  # noqa: E402
 from calib_core.robots import spray7  # noqa: E402
-from calib_core.twin import Twin, draw_hidden_effect  # noqa: E402
+from calib_world import World  # noqa: E402
+from calib_world.scenarios import hide  # noqa: E402
 
 
 def main(sizes=(150, 2000)):
@@ -23,14 +24,14 @@ def main(sizes=(150, 2000)):
     print("| poses | hidden effect | auto run (s) | findings | held-out RMS geometric -> extended (mm) |")
     print("|---|---|---|---|---|")
     for n in sizes:
-        for kind in (None, "joint_compliance", "cyclic_joint_error", "unexplained"):
-            twin = Twin(model, 7)
-            q = twin.sample_joints(n)
+        for kind in (None, "joint_spring", "gear_error", "cable_force"):
+            world = World(model, 7)
+            q = world.sample_joints(n, np.random.default_rng(7))
             label = "none"
             if kind:
-                effect, _ = draw_hidden_effect(twin, kind, 5.0, q, np.random.default_rng(7))
-                label = effect.label(model)
-            meas = twin.measure(q)
+                info = hide(world, kind, 5.0, np.random.default_rng(7), q=q)
+                label = f"{kind} {','.join(info['joints'])}"
+            meas = world.measure(q)
             t = time.perf_counter()
             out = calibrate(model, meas, "auto")
             dt = time.perf_counter() - t

@@ -1,18 +1,19 @@
-"""The digital twin: a physical robot that differs from its nominal model, measured by a laser tracker.
+"""The geometric digital twin: a rigid robot that differs from its nominal model, measured by a laser tracker.
 
 Geometric errors are drawn at the magnitudes of Wang et al. 2023, Table 4 (lengths ~10 mm, angles
 ~8 mrad RMS), the tracker frame is an arbitrary rigid pose, the tool point is off by millimetres,
 and every measurement carries repeatability noise and tracker noise (15 um + 6 um/m).
+
+It has no hidden effects, on purpose: it shares the calibration's own kinematics, so it can only test the
+identification and the compensation of the geometry.  Hidden physical causes live in the independent
+world `calib_world` (its own kinematics, statics and noise), which is what the diagnosis is tested on.
 """
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import kinematics as K
-from .effects import Basis, Context, Effect, apply
 from .identifiability import analyse
 from .identify import tracker_sigma_mm
 from .io import Measurements
@@ -43,7 +44,7 @@ def sample_uniform(model: RobotModel, n: int, rng: np.random.Generator, margin: 
 
 
 class Twin:
-    """A simulated physical robot and tracker; `measure` returns contract-ready Measurements."""
+    """A simulated rigid robot and tracker; `measure` returns contract-ready Measurements."""
 
     def __init__(
         self,
@@ -74,12 +75,7 @@ class Twin:
         self.x_true = x
         self.repeatability_mm = repeatability_mm
         self.tracker_noise = tracker_noise
-        self.effects: list[tuple[Effect, np.ndarray]] = []
         self.start_time = 1_793_700_000.0  # a campaign start (2026-11-02), 20 s per pose
-
-    def hide(self, effect: Effect, values) -> None:
-        """Give the physical robot an effect the calibration does not know about."""
-        self.effects.append((effect, np.asarray(values, float)))
 
     def columns(self, joints: np.ndarray, payload_kg=None, temperature: bool = False) -> Measurements:
         """The non-positional columns of a measurement campaign: time, optional warming and payload."""
@@ -90,37 +86,6 @@ class Twin:
         temp = 20.0 + 6.0 * (1 - np.exp(-(t - t[0]) / 5400.0)) if temperature else None
         return Measurements(joints=joints, points=np.zeros((N, 3)), timestamp=t, temperature=temp, payload=payload)
 
-    def displacement(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
-        """What the hidden effects add to the tool point at these poses, (N, 3) mm."""
-        meas = columns or self.columns(joints)
-        return self._true(meas) - self.true_points(joints)
-
-    def _true(self, meas: Measurements) -> np.ndarray:
-        q = meas.joints
-        if not self.effects:
-            return K.forward(self.model, self.x_true, q, self.R0)
-        ctx = Context(self.model, K.Chain(self.model, self.x_true, q, self.R0), meas)
-        dq, dp = apply([e for e, _ in self.effects], [v for _, v in self.effects], ctx)
-        return K.forward(self.model, self.x_true, q + dq, self.R0) + dp
-
-    def unexplained_rms(self, effect: Effect, values, meas: Measurements, absorb: bool = True) -> float:
-        """RMS (mm) of the part of an effect's displacement that no geometric parameter can absorb
-        (all of it with absorb=False)."""
-        ctx = Context(self.model, K.Chain(self.model, self.x_true, meas.joints, self.R0), meas)
-        dq, dp = apply([effect], [np.asarray(values, float)], ctx)
-        d = (np.einsum("nij,nj->ni", ctx.chain.joint_jacobian(), dq) + dp).ravel()
-        J = ctx.chain.jacobian().reshape(len(d), -1)
-        rest = d - J @ np.linalg.lstsq(J, d, rcond=None)[0] if absorb else d
-        return float(np.sqrt(np.mean((rest.reshape(-1, 3) ** 2).sum(1))))
-
-    def hide_scaled(self, effect: Effect, direction, n_noise: float, meas: Measurements) -> np.ndarray:
-        """Hide `effect` along `direction` sized so its unexplainable RMS is n_noise times the noise RMS."""
-        direction = np.asarray(direction, float)
-        unit = self.unexplained_rms(effect, direction, meas)
-        values = direction * n_noise * self.noise_rms_mm(meas.points if meas.points.any() else
-                                                         self.true_points(meas.joints)) / unit
-        self.hide(effect, values)
-        return values
     def true_points(self, joints: np.ndarray) -> np.ndarray:
         """Where the physical robot puts the tool point, mm in the tracker frame, without noise."""
         return K.forward(self.model, self.x_true, joints, self.R0)
@@ -133,10 +98,11 @@ class Twin:
         """Measure the physical robot at `joints` (internal units) or at n random poses.
 
         payload_kg: None (no column), a value, or a list to draw from per pose; temperature adds a
-        warming-up temperature column. Every campaign has timestamps."""
+        warming-up temperature column (the rigid twin logs them but is not affected by them). Every
+        campaign has timestamps."""
         q = self.sample_joints(n) if joints is None else np.asarray(joints, float)
         meas = self.columns(q, payload_kg, temperature)
-        p = self._true(meas)
+        p = self.true_points(q)
         N = len(q)
         p = p + self.rng.normal(0.0, self.repeatability_mm, (N, 3))
         if self.tracker_noise:
@@ -149,53 +115,3 @@ class Twin:
         """Expected RMS 3-D distance of a perfect model to measurements at these points (noise only)."""
         tracker = tracker_sigma_mm(points_mm) ** 2 if self.tracker_noise else 0.0
         return float(np.sqrt(3 * np.mean(self.repeatability_mm**2 + tracker)))
-
-
-@dataclass(frozen=True)
-class BaseSway(Effect):
-    """Off-vocabulary cause for blind tests: the tool point sways with one joint's angle (cable drag, a
-    soft foundation), 1st and 2nd harmonic in two fixed directions. No named cause of the diagnosis has
-    this shape, so it must come out as `unexplained`."""
-
-    kind = "base_sway"
-
-    def parameter_names(self, model):
-        return ["sway.a1", "sway.a2"]
-
-    def parameter_units(self, model):
-        return ["mm", "mm"]
-
-    def basis(self, ctx: Context) -> Basis:
-        q = ctx.meas.joints[:, self.joints[0]]
-        cart = np.zeros((len(q), 3, 2))
-        cart[:, :, 0] = np.sin(q + 0.3)[:, None] * np.array([1.0, 0.0, 0.5])
-        cart[:, :, 1] = np.cos(2 * q - 0.5)[:, None] * np.array([0.0, 1.0, -0.3])
-        return Basis(None, cart, q, "joint angle (rad)")
-
-
-HIDDEN_KINDS = ("joint_compliance", "link_deflection", "cyclic_joint_error", "backlash", "joint_scale",
-                "axis_straightness", "thermal_drift", "unexplained")
-
-
-def draw_hidden_effect(twin: "Twin", kind: str, n_noise: float, joints: np.ndarray, rng: np.random.Generator,
-                       min_observable: float = 0.2) -> tuple[Effect, np.ndarray]:
-    """Hide one effect of `kind` on a randomly drawn eligible joint, in a random direction, sized so that
-    its part no geometric parameter can absorb is n_noise x the noise RMS. Returns (effect, values)."""
-    from .effects import candidates
-
-    meas = twin.columns(joints, temperature=kind == "thermal_drift")
-    if kind == "unexplained":
-        pool = [BaseSway((j,)) for j in range(twin.model.n_joints) if not twin.model.prismatic[j]]
-    else:
-        pool = [e for e in candidates(twin.model, meas)[0] if e.kind == kind]
-    rng.shuffle(pool)
-    for effect in pool:
-        k = len(effect.parameter_names(twin.model))
-        direction = rng.normal(size=k)
-        if kind == "thermal_drift":
-            direction[3] *= 1e-3  # strain per degree against mm per degree: comparable sizes
-        direction /= np.linalg.norm(direction)
-        total = twin.unexplained_rms(effect, direction, meas, absorb=False)
-        if total > 0 and twin.unexplained_rms(effect, direction, meas) > min_observable * total:
-            return effect, twin.hide_scaled(effect, direction, n_noise, meas)
-    raise ValueError(f"no joint of {twin.model.name} can show {kind}")

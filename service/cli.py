@@ -9,9 +9,10 @@ from pathlib import Path
 
 from .config import Settings
 
-HIDDEN_KINDS = ("joint_compliance", "link_deflection", "cyclic_joint_error", "backlash", "joint_scale",
-                "axis_straightness", "thermal_drift", "unexplained")
-"""calib_core.twin.HIDDEN_KINDS, spelled out so that `calib --help` does not import numpy and scipy."""
+HIDDEN_KINDS = ("joint_spring", "stiffening_spring", "hard_backlash", "soft_backlash", "gear_error", "encoder_scale",
+                "rail_straightness", "cantilever", "telescopic_bending", "thermal_growth", "base_tilt", "rehoming_step",
+                "cable_force")
+"""calib_world.KINDS, spelled out so that `calib --help` does not import numpy and scipy."""
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,8 +1,9 @@
 """`calib demo`: the whole story, end to end, over HTTP against a `calib serve` the demo starts itself.
 
-Without data: the 7-DoF spray-painting robot of Wang et al. 2023 as a digital twin (geometric errors of the
-paper's size, a laser tracker, one hidden effect drawn at random unless `--effect` names it), 150 calibration
-poses and 100 validation poses. With `--robot MODEL.json --data MEASUREMENTS.csv`: real measurements, 30 % of
+Without data: the 7-DoF spray-painting robot of Wang et al. 2023 as a digital twin in the independent simulated
+world `calib_world` (its own kinematics, statics and noise; true geometry and masses off the model's, a laser
+tracker, one hidden physical cause drawn at random unless `--effect` names a world kind), 150 calibration poses
+and 100 validation poses. With `--robot MODEL.json --data MEASUREMENTS.csv`: real measurements, 30 % of
 the poses held out client-side for validation.
 
 The story is printed on stdout; the progress bar and the server's failures go to stderr.
@@ -35,7 +36,11 @@ from .config import Settings
 N_CAL, N_VAL = 150, 100
 HOLDOUT_FRACTION = 0.3
 SIZE_RANGE = (4.0, 10.0)
-"""A drawn hidden effect's part no geometric parameter can absorb is this many times the noise RMS."""
+"""A drawn hidden cause's part no geometric parameter can absorb is this many times the noise RMS."""
+EFFECTS = ("joint_spring", "stiffening_spring", "hard_backlash", "soft_backlash", "gear_error", "encoder_scale",
+           "rail_straightness", "cantilever", "telescopic_bending", "thermal_growth", "base_tilt", "rehoming_step",
+           "cable_force", "none")
+"""`--effect`: the world's kinds (calib_world.KINDS, checked by the tests) and none."""
 WIDTH = 100
 
 
@@ -233,34 +238,39 @@ class Campaign:
     val: Measurements  # validation poses, never uploaded
     source: str  # one line: where the data comes from
     validation: str  # one line: what the validation poses are
-    twin: object | None = None
-    hidden: tuple | None = None  # (kind, effect, n_noise) of the twin's hidden effect
+    twin: object | None = None  # the simulated world (calib_world.World)
+    hidden: dict | None = None  # calib_world.hide's description of the hidden cause
+    val_truth: np.ndarray | None = None  # noise-free validation points of the simulated world
     n_total: int = 0
 
 
 def simulated(effect: str | None, seed: int) -> Campaign:
     from calib_core.robots import spray7
-    from calib_core.twin import HIDDEN_KINDS, Twin, draw_hidden_effect
+    from calib_world import KINDS, World, hide
 
     doc = spray7()
     model = parse_model(doc)
-    rng = np.random.default_rng(seed)
-    kind = effect or str(rng.choice(HIDDEN_KINDS))
-    twin = Twin(model, seed)
-    q = twin.sample_joints(N_CAL)
+    rng = np.random.default_rng((seed, 1))
+    kind = effect or str(rng.choice(KINDS))
+    if kind != "none" and kind not in KINDS:
+        raise DemoError(f"unknown effect {kind!r}: use one of {', '.join(KINDS)} or none")
+    world = World(model, seed)
     hidden = None
     if kind != "none":
-        n_noise = float(np.exp(rng.uniform(*np.log(SIZE_RANGE))))
-        eff, _ = draw_hidden_effect(twin, kind, n_noise, q, rng)
-        hidden = (kind, eff, n_noise)
-    thermal = kind == "thermal_drift"
-    cal = twin.measure(q, temperature=thermal)
-    val = twin.measure(twin.sample_joints(N_VAL), temperature=thermal)
-    return Campaign(doc, model, write_measurements(cal, model), cal, val,
-                    source=f"simulated: a digital twin of the robot (geometric errors of the paper's size, tool point "
-                           f"off by millimetres, laser tracker noise 15 um + 6 um/m, repeatability 20 um), seed {seed}",
+        size = float(np.exp(rng.uniform(*np.log(SIZE_RANGE))))
+        hidden = hide(world, kind, size, rng, n=N_CAL)
+        q, thermal = hidden["q"], hidden["temperature"]
+    else:
+        q, thermal = world.sample_joints(N_CAL, rng), False
+    cal = world.measure(q, temperature=thermal)
+    val = world.campaign(world.sample_joints(N_VAL, rng), temperature=thermal)
+    rep = 1000 * world.repeatability_mm
+    return Campaign(doc, model, write_measurements(cal, model), cal, val.meas,
+                    source=f"simulated: a digital twin of the robot in an independent world (its true geometry "
+                           f"off by the paper's errors, masses not the model's, tool point off by millimetres, laser "
+                           f"tracker noise 15 um + 6 um/m, repeatability {rep:.0f} um), seed {seed}",
                     validation=f"{N_VAL} more poses measured on the same twin, never uploaded",
-                    twin=twin, hidden=hidden, n_total=N_CAL + N_VAL)
+                    twin=world, hidden=hidden, val_truth=val.truth.points, n_total=N_CAL + N_VAL)
 
 
 def from_files(robot: Path, data: Path, seed: int) -> Campaign:
@@ -373,9 +383,9 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
     head("2. The measurement campaign")
     say(f"Data: {camp.source}.", 3)
     if camp.twin is not None:
-        hidden = "one effect the model does not know, drawn at random" if not args.effect else (
-            "no effect beyond the geometry" if args.effect == "none" else f"one effect the model does not know "
-                                                                           f"(--effect {args.effect})")
+        hidden = "one physical cause the model does not know, drawn at random" if not args.effect else (
+            "no cause beyond the geometry" if args.effect == "none" else f"one physical cause the model does not "
+                                                                         f"know (--effect {args.effect})")
         say(f"The twin hides {hidden}: it is revealed at the end (calib demo --seed {seed} repeats this run).", 3)
     say(f"Calibration poses: {camp.cal.n_poses}, uploaded. Validation: {camp.validation}.", 3)
     robot = api.call("POST", "/robots", (201,), json=camp.model_doc).json()
@@ -402,8 +412,9 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
 
     head(f"4. What the service found (errors on the {camp.val.n_poses} validation poses)")
     before = evaluate(identify(model, camp.cal, free=("base", "tool"), folds=1), camp.val)
-    geo_val = errors_mm(camp.val.points, api.predict_mm(geo_cal["id"], model, camp.val))
-    ext_val = errors_mm(camp.val.points, api.predict_mm(cal_id, model, camp.val))
+    geo_pred = api.predict_mm(geo_cal["id"], model, camp.val)
+    ext_pred = api.predict_mm(cal_id, model, camp.val)
+    geo_val, ext_val = errors_mm(camp.val.points, geo_pred), errors_mm(camp.val.points, ext_pred)
     d = cal.get("diagnosis") or {}
     g = d.get("geometric") or {}
     floor = d.get("noise_floor_mm")
@@ -437,6 +448,13 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
             f"{fmm(ext_val['rms_mm'])} RMS; max {fmm(geo_val['max_mm'])} -> {fmm(ext_val['max_mm'])}).", 3)
     else:
         say(f"The final model is the geometric one: {fmm(ext_val['rms_mm'])} RMS on the validation poses.", 3)
+    if camp.val_truth is not None:
+        geo_t, ext_t = errors_mm(camp.val_truth, geo_pred), errors_mm(camp.val_truth, ext_pred)
+        noise = camp.twin.noise_rms_mm(camp.val.joints)
+        final = (f"the geometric model {fmm(geo_t['rms_mm'])}, the extended one {fmm(ext_t['rms_mm'])}" if findings
+                 else f"the final model {fmm(ext_t['rms_mm'])}")
+        say(f"Against the twin's noise-free truth at the validation poses (what the tracker cannot show): {final} "
+            f"RMS, for a measurement noise of {fmm(noise)} RMS.", 3)
 
     head("5. Compensation: POST /calibrations/{id}/compensate")
     _compensation(api, camp, cal_id, before)
@@ -494,32 +512,49 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
     as_programmed = twin.measure(seeds).points  # the robot at the program's joints
     compensated = twin.measure(joints).points  # the robot at the service's joints
     e0, e1 = errors_mm(as_programmed, targets_mm), errors_mm(compensated, targets_mm)
-    thermal = camp.hidden is not None and camp.hidden[0] == "thermal_drift"
     say(f"{len(joints)} targets: where the robot program, using the nominal model, believes the validation poses "
-        f"put the tool. Measured on the twin{' at the calibration mean temperature' if thermal else ''}:", 3)
+        f"put the tool. Measured on the twin:", 3)
     table([("at the program's joints (uncompensated)", e0), ("at the compensated joints from the service", e1)])
     say(f"The calibrated model reaches {n_ok} of {len(joints)} targets within 0.01 mm (largest model residual "
         f"{np.nanmax(resid):.4f} mm); what is left is the robot's repeatability and the tracker noise.", 3)
 
 
 def _reveal(camp: Campaign, findings: list[dict]) -> None:
-    model = camp.model
     named = [(f["kind"], tuple(f.get("joints") or ())) for f in findings]
     if camp.hidden is None:
         verdict = "no finding: correct" if not named else f"found {named}: a false alarm"
         say(f"The twin hid nothing beyond the geometry -> {verdict}.", 3)
         return
-    kind, eff, n_noise = camp.hidden
-    joints = tuple(model.joint_names[j] for j in eff.joints) if kind != "unexplained" else ()
-    if kind == "unexplained":
-        label = (f"a sway of the tool with {model.joint_names[eff.joints[0]]} (no named cause has that shape: "
-                 "it must come out as unexplained)")
+    h = camp.hidden
+    kind, expected, joints = h["kind"], h["expected"], tuple(h["joints"])
+    label = kind.replace("_", " ") + (f" on {', '.join(joints)}" if joints else "")
+    params = ", ".join(f"{k}={_show(v)}" for k, v in h["parameters"].items() if k not in ("cause", "world_kind"))
+    say(f"The twin hid {label}, sized {h['size']:.1f}x the noise -> {_verdict(expected, joints, findings)}.", 3)
+    say(f"The cause: {h['parameters']['cause']}({params}); its part no geometric parameter can absorb is "
+        f"{fmm(h['unabsorbed_rms_mm'])} RMS (of {fmm(h['total_rms_mm'])}) against a noise of "
+        f"{fmm(h['noise_rms_mm'])}.", 5)
+    if expected == "unexplained":
+        say("No named cause of the diagnosis has this shape: a correct diagnosis reports it as unexplained "
+            "structure, not as a named cause.", 5)
     else:
-        label = f"{kind.replace('_', ' ')}" + (f" on {', '.join(joints)}" if joints else "") + (
-            f" (harmonic {eff.harmonic})" if getattr(eff, "harmonic", None) is not None else "")
-    if kind == "unexplained":
-        hit = any(k == "unexplained" for k, _ in named)
-    else:
-        hit = any(k == kind and j == joints for k, j in named)
-    verdict = "named correctly" if hit else ("not named" if not named else f"named differently: {named}")
-    say(f"The twin hid {label}, sized {n_noise:.1f}x the noise -> {verdict}.", 3)
+        say(f"A correct diagnosis names it {expected.replace('_', ' ')}.", 5)
+
+
+def _verdict(expected: str, joints: tuple, findings: list[dict]) -> str:
+    """Whether the findings name the hidden cause (its kind on its joints, or it listed as a look-alike)."""
+    def same(f):
+        return f["kind"] == expected and (expected == "unexplained" or set(joints) == set(f.get("joints") or ()))
+    named = [(f["kind"], tuple(f.get("joints") or ())) for f in findings]
+    if any(same(f) for f in findings):
+        return "named correctly"
+    if any(same(a) for f in findings for a in f.get("indistinguishable_from") or ()):
+        return "named among look-alikes this pose set cannot tell apart"
+    return "not named" if not named else f"named differently: {named}"
+
+
+def _show(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)):
+        return "(" + ", ".join(_show(x) for x in v) + ")"
+    return str(v)

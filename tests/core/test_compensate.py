@@ -1,50 +1,55 @@
-"""Compensation on the twin: the physical robot (hidden effects included) runs the returned joints."""
+"""Compensation on the independent world: the physical robot (hidden causes included) runs the returned joints."""
 import numpy as np
 import pytest
 from scipy.optimize import minimize
 
 from calib_core.compensate import Compensation, compensate, nominal_targets, nominal_to_calibrated
 from calib_core.diagnose import diagnose
-from calib_core.effects import JointCompliance
 from calib_core.identify import identify
 from calib_core.model import parse_model
 from calib_core.robots import arm6, spray7
-from calib_core.twin import Twin, draw_hidden_effect, sample_uniform
+from calib_core.twin import Twin, sample_uniform
+from calib_world import JointSpring, World, hide
+from calib_world.scenarios import size_cause
 
 SPRAY = parse_model(spray7())
 SCALE = np.where(SPRAY.prismatic, 1000.0, 1.0)  # 1 rad ~ 1000 mm, as the solver's metric
 
 
 def _calibrated(seed, model=SPRAY, payload_kg=None, joint=None):
-    """A twin with hidden joint compliance (8x noise; on a drawn joint, or on `joint`), 150 measured poses,
+    """A world with a hidden joint spring (8x noise; on a drawn joint, or on `joint`), 150 measured poses,
     the diagnosed robot."""
     rng = np.random.default_rng(seed)
-    twin = Twin(model, seed)
-    q = twin.sample_joints(150)
+    world = World(model, seed)
     if joint is None:
-        effect, _ = draw_hidden_effect(twin, "joint_compliance", 8.0, q, rng)
+        info = hide(world, "joint_spring", 8.0, rng, payload_kg=payload_kg)
+        q, cause = info["q"], info["cause"]
     else:
-        effect = JointCompliance((joint,))
-        twin.hide_scaled(effect, [rng.choice([-1.0, 1.0])], 8.0, twin.columns(q))
-    d = diagnose(model, twin.measure(q, payload_kg=payload_kg))
-    assert "joint_compliance" in [f["kind"] for f in d.findings], (seed, effect, d.explanation)
-    return twin, d, rng
+        q = world.sample_joints(150, rng)
+        cols = world.columns(q, payload_kg)
+        tau = world.robot.joint_loads(q, cols.payload_kg())[:, joint]
+        cause, _ = size_cause(world, JointSpring(joint, 1e-4 / np.abs(tau).max()),
+                              8.0 * world.noise_rms_mm(q), q, cols)
+        world.hide(cause)
+    d = diagnose(model, world.measure(q, payload_kg=payload_kg))
+    assert "joint_compliance" in [f["kind"] for f in d.findings], (seed, cause, d.explanation)
+    return world, d, rng
 
 
-def _program(twin, rng, n, model=SPRAY, mrad=3.0):
+def _program(world, rng, n, model=SPRAY, mrad=3.0):
     """Targets where the physical robot can go (slightly moved), seeds a few mrad / mm off the joints."""
     scale = np.where(model.prismatic, 1000.0, 1.0)
     q = sample_uniform(model, n, rng, margin=0.1)
-    targets = twin._true(twin.columns(q)) + rng.normal(0.0, 0.5, (n, 3))
+    targets = world.true_points(q) + rng.normal(0.0, 0.5, (n, 3))
     seeds = q + rng.normal(0.0, mrad * 1e-3, q.shape) * scale
     return targets, seeds
 
 
-def _achieved(twin, joints, columns=None):
-    """Where the physical robot (geometry + hidden effects) puts the tool at these joints."""
-    cols = twin.columns(joints) if columns is None else columns
-    cols.joints = joints
-    return twin._true(cols)
+def _achieved(world, joints, columns=None):
+    """Where the physical robot (geometry + hidden causes) puts the tool at these joints."""
+    if columns is not None:
+        columns.joints = joints
+    return world.true_points(joints, columns)
 
 
 def _within_limits(model, q):
@@ -56,10 +61,10 @@ def _stats(d):
 
 
 def test_commands_put_the_physical_robot_on_target(seed):
-    twin, d, rng = _calibrated(seed)
+    world, d, rng = _calibrated(seed)
     robot = d.calibration.robot
-    targets, seeds = _program(twin, rng, 500)
-    seed_miss = np.linalg.norm(_achieved(twin, seeds) - targets, axis=1)
+    targets, seeds = _program(world, rng, 500)
+    seed_miss = np.linalg.norm(_achieved(world, seeds) - targets, axis=1)
     assert np.median(seed_miss) > 1.0, (seed, np.median(seed_miss))  # the seeds miss by millimetres
 
     c = compensate(robot, targets, seeds)
@@ -72,18 +77,18 @@ def test_commands_put_the_physical_robot_on_target(seed):
     assert np.allclose(model_d, c.residual_mm, atol=1e-12)
     assert _within_limits(SPRAY, c.joints)
 
-    rms, mx = _stats(np.linalg.norm(_achieved(twin, c.joints) - targets, axis=1))
+    rms, mx = _stats(np.linalg.norm(_achieved(world, c.joints) - targets, axis=1))
     assert rms <= 0.08 and mx <= 0.3, (seed, rms, mx)
 
-    # the identified effect matters: the geometric-only model compensates worse on the same twin
+    # the identified effect matters: the geometric-only model compensates worse on the same robot
     geo = compensate(d.geometric.robot, targets, seeds)
-    g_rms, _ = _stats(np.linalg.norm(_achieved(twin, geo.joints) - targets, axis=1))
+    g_rms, _ = _stats(np.linalg.norm(_achieved(world, geo.joints) - targets, axis=1))
     assert rms < g_rms, (seed, rms, g_rms)
 
 
 def test_locked_telescopic_joint_stays_at_its_seed(seed):
-    twin, d, rng = _calibrated(seed)
-    targets, seeds = _program(twin, rng, 300)
+    world, d, rng = _calibrated(seed)
+    targets, seeds = _program(world, rng, 300)
     for locked in ((5,), ("J6",)):
         c = compensate(d.calibration.robot, targets, seeds, locked=locked)
         # six joints for three constraints, yet near the J3/J4 fold they cannot replace the telescope's own
@@ -93,14 +98,14 @@ def test_locked_telescopic_joint_stays_at_its_seed(seed):
         assert np.array_equal(c.joints[:, 5], seeds[:, 5])
         assert _within_limits(SPRAY, c.joints)
         ok = c.reachable
-        rms, mx = _stats(np.linalg.norm(_achieved(twin, c.joints[ok]) - targets[ok], axis=1))
+        rms, mx = _stats(np.linalg.norm(_achieved(world, c.joints[ok]) - targets[ok], axis=1))
         assert rms <= 0.08 and mx <= 0.3, (seed, locked, rms, mx)
 
 
 def test_the_answer_is_the_command_nearest_the_seed(seed):
-    twin, d, rng = _calibrated(seed)
+    world, d, rng = _calibrated(seed)
     robot = d.calibration.robot
-    targets, seeds = _program(twin, rng, 6, mrad=20.0)
+    targets, seeds = _program(world, rng, 6, mrad=20.0)
     c = compensate(robot, targets, seeds)
     assert c.reachable.all(), (seed, c.reason)
     lo, hi = SPRAY.limits[:, 0] / SCALE, SPRAY.limits[:, 1] / SCALE
@@ -116,9 +121,9 @@ def test_the_answer_is_the_command_nearest_the_seed(seed):
 
 
 def test_unreachable_targets_are_reported_and_the_batch_succeeds(seed):
-    twin, d, rng = _calibrated(seed)
+    world, d, rng = _calibrated(seed)
     robot = d.calibration.robot
-    targets, seeds = _program(twin, rng, 50)
+    targets, seeds = _program(world, rng, 50)
     targets[7, 0] += 20_000.0  # 20 m away
     targets[11] = np.nan
     c = compensate(robot, targets, seeds)
@@ -130,14 +135,14 @@ def test_unreachable_targets_are_reported_and_the_batch_succeeds(seed):
     assert all(c.reason[i] is None for i in np.flatnonzero(ok))
     assert np.isfinite(c.joints).all() and _within_limits(SPRAY, c.joints)
     assert c.residual_mm[7] > 1000.0
-    rms, mx = _stats(np.linalg.norm(_achieved(twin, c.joints[ok]) - targets[ok], axis=1))
+    rms, mx = _stats(np.linalg.norm(_achieved(world, c.joints[ok]) - targets[ok], axis=1))
     assert rms <= 0.08 and mx <= 0.3, (seed, rms, mx)
     out = c.to_dict(SPRAY)
     assert out["residual_mm"][11] is None and out["reachable"][7] is False and out["reason"][7]
 
 
 def test_a_joint_needed_beyond_its_limit_is_named(seed):
-    twin, d, rng = _calibrated(seed)
+    world, d, rng = _calibrated(seed)
     robot = d.calibration.robot
     q = sample_uniform(SPRAY, 50, rng, margin=0.1)
     q[:, 5] = SPRAY.limits[5, 1]  # telescope fully out
@@ -159,7 +164,7 @@ def test_a_joint_needed_beyond_its_limit_is_named(seed):
 
 
 def test_program_given_as_joints_only(seed):
-    twin, d, rng = _calibrated(seed)
+    world, d, rng = _calibrated(seed)
     robot = d.calibration.robot
     program = sample_uniform(SPRAY, 300, rng, margin=0.1)
     # where the nominal model says the tool is, placed by the calibrated base pose (independent recomputation)
@@ -168,33 +173,33 @@ def test_program_given_as_joints_only(seed):
     want = K.forward(SPRAY, K.nominal_vector(SPRAY), program) @ Rb.T + pb
     assert np.allclose(nominal_targets(robot, SPRAY, program), want)
 
-    miss = np.linalg.norm(_achieved(twin, program) - want, axis=1)
+    miss = np.linalg.norm(_achieved(world, program) - want, axis=1)
     assert np.median(miss) > 1.0, (seed, np.median(miss))  # the nominal program misses by millimetres
     c = nominal_to_calibrated(robot, None, program)
     assert c.reachable.all(), (seed, [r for r in c.reason if r])
     assert _within_limits(SPRAY, c.joints)
-    rms, mx = _stats(np.linalg.norm(_achieved(twin, c.joints) - want, axis=1))
+    rms, mx = _stats(np.linalg.norm(_achieved(world, c.joints) - want, axis=1))
     assert rms <= 0.08 and mx <= 0.3, (seed, rms, mx)
     locked = nominal_to_calibrated(robot, SPRAY, program, locked=("J6",))
     assert np.array_equal(locked.joints[:, 5], program[:, 5])
     assert locked.reachable.mean() >= 0.98, (seed, [r for r in locked.reason if r])  # see the locked test
     ok = locked.reachable
-    rms, mx = _stats(np.linalg.norm(_achieved(twin, locked.joints[ok]) - want[ok], axis=1))
+    rms, mx = _stats(np.linalg.norm(_achieved(world, locked.joints[ok]) - want[ok], axis=1))
     assert rms <= 0.08 and mx <= 0.3, (seed, rms, mx)
 
 
 def test_payload_column_reaches_the_effects(seed):
     """Compliance under payload: the commands for a 40 kg tool differ from the 0 kg ones and land on target."""
-    twin, d, rng = _calibrated(seed, payload_kg=[0.0, 20.0, 40.0])
+    world, d, rng = _calibrated(seed, payload_kg=[0.0, 20.0, 40.0])
     robot = d.calibration.robot
-    targets, seeds = _program(twin, rng, 200)
-    cols = twin.columns(seeds, payload_kg=40.0)
+    targets, seeds = _program(world, rng, 200)
+    cols = world.columns(seeds, payload_kg=40.0)
     c = compensate(robot, targets, seeds, columns=cols)
     c0 = compensate(robot, targets, seeds)
     assert c.reachable.all() and c0.reachable.all()
     assert np.allclose(np.linalg.norm(robot.predict(c.joints, _with_joints(cols, c.joints)) - targets, axis=1),
                        c.residual_mm, atol=1e-12)
-    rms, mx = _stats(np.linalg.norm(_achieved(twin, c.joints, twin.columns(c.joints, payload_kg=40.0)) - targets,
+    rms, mx = _stats(np.linalg.norm(_achieved(world, c.joints, world.columns(c.joints, payload_kg=40.0)) - targets,
                                     axis=1))
     assert rms <= 0.08 and mx <= 0.3, (seed, rms, mx)
 
@@ -206,13 +211,13 @@ def _with_joints(cols, q):
 
 def test_any_serial_chain_and_single_target(seed):
     model = parse_model(arm6())
-    twin, d, rng = _calibrated(seed, model, joint=1)  # A2, the shoulder: always loaded
-    targets, seeds = _program(twin, rng, 200, model)
+    world, d, rng = _calibrated(seed, model, joint=1)  # A2, the shoulder: always loaded
+    targets, seeds = _program(world, rng, 200, model)
     c = compensate(d.calibration.robot, targets, seeds)
     # near the wrist singularity (A5 ~ 0) a target may need more than the default 30 iterations
     assert c.reachable.mean() >= 0.99, (seed, [r for r in c.reason if r])
     ok = c.reachable
-    rms, mx = _stats(np.linalg.norm(_achieved(twin, c.joints[ok]) - targets[ok], axis=1))
+    rms, mx = _stats(np.linalg.norm(_achieved(world, c.joints[ok]) - targets[ok], axis=1))
     assert rms <= 0.08 and mx <= 0.3, (seed, rms, mx)
     one = compensate(d.calibration.robot, targets[0], seeds[0])
     assert one.joints.shape == (1, model.n_joints) and np.allclose(one.joints[0], c.joints[0])

@@ -1,4 +1,5 @@
-"""Blind search for hidden effects: kind, joint, magnitude and seed are drawn, the pipeline must name them."""
+"""Blind search for hidden causes in the independent world (calib_world): kind, joint, size and seed are drawn,
+the diagnosis must name what the physics did, with its own vocabulary (calib_world.EXPECTED)."""
 import numpy as np
 import pytest
 
@@ -7,87 +8,138 @@ from calib_core.identify import CalibratedRobot, evaluate
 from calib_core.model import parse_model
 from calib_core.pipeline import calibrate
 from calib_core.robots import arm6, spray7
-from calib_core.twin import HIDDEN_KINDS, Twin, draw_hidden_effect
+from calib_world import EXPECTED, KINDS, World, hide, null_world
 
 SPRAY = parse_model(spray7())
+NAMED = [k for k in KINDS if EXPECTED[k] != "unexplained"]
+"""World kinds the diagnosis has a name for."""
+OFF_VOCABULARY = [k for k in KINDS if EXPECTED[k] == "unexplained"]
+"""World kinds no named cause has the shape of (base tilt, re-homing step, cable force)."""
+SIZES = (3.0, 8.0)
+"""Drawn log-uniformly: the unabsorbable part of the hidden cause is this many times the noise RMS.  The
+benchmark (benchmarks/detection.py) measures the small sizes; a test must pass on every draw."""
+TRUTH_LIMIT = 0.6
+"""The extended model's error against the world's noise-free truth on fresh poses, times the noise RMS."""
 
 
-def _run(kind, n_noise, seed, model=SPRAY):
-    rng = np.random.default_rng(seed)
-    twin = Twin(model, seed)
-    q = twin.sample_joints(150)
-    effect, _ = draw_hidden_effect(twin, kind, n_noise, q, rng)
-    meas = twin.measure(q, temperature=kind == "thermal_drift")
-    return twin, effect, meas, diagnose(model, meas)
+def _size(seed: int, lo: float = SIZES[0], hi: float = SIZES[1]) -> float:
+    return float(np.exp(np.random.default_rng((seed, 2)).uniform(np.log(lo), np.log(hi))))
 
 
-@pytest.mark.parametrize("kind", HIDDEN_KINDS)
-def test_hidden_effect_is_found_blind(kind, seed):
-    n_noise = float(np.exp(np.random.default_rng(seed).uniform(np.log(2.0), np.log(15.0))))  # 2x .. 15x noise
-    twin, effect, meas, d = _run(kind, n_noise, seed)
-    where = f"{kind} on {effect.joints} at {n_noise:.1f}x noise, seed {seed}: {d.explanation}"
-    assert d.findings, where
-    first = d.findings[0]
-    assert first["kind"] == kind, where
-    if kind != "unexplained":
-        assert first["joints"] == [SPRAY.joint_names[j] for j in effect.joints], where
-    assert first["gain_pct"] > 0, where
-    # with the effect in the model, fresh poses are predicted at the noise floor (within 20 %)
-    val = twin.measure(n=100, temperature=kind == "thermal_drift")
-    floor = twin.noise_rms_mm(val.points)
-    limit = 1.2 if kind != "unexplained" else 2.0  # a nonparametric field cannot be exact on 150 poses
-    assert evaluate(d.calibration, val)["rms_mm"] < limit * floor, where
+def _world(kind, size, seed, model=SPRAY):
+    """A world hiding one cause of `kind`, its description and 150 measured poses."""
+    world = World(model, seed)
+    info = hide(world, kind, size, np.random.default_rng((seed, 1)))
+    meas = world.measure(info["q"], payload_kg=info["payload_kg"], temperature=info["temperature"])
+    return world, info, meas
 
 
-def test_no_effect_means_no_finding(seed):
-    for k in range(3):
-        twin = Twin(SPRAY, seed + k)
-        d = diagnose(SPRAY, twin.measure(n=150))
-        assert d.findings == [], (seed + k, d.findings)
+def _named(findings, kind, joints) -> dict | None:
+    """The finding that names `kind` on exactly these joints, or lists it among its look-alikes."""
+    for f in findings:
+        if f["kind"] != kind:
+            continue
+        if kind == "unexplained" or set(f["joints"]) == set(joints):
+            return f
+        if any(a["kind"] == kind and set(a["joints"]) == set(joints) for a in f.get("indistinguishable_from", [])):
+            return f
+    return None
+
+
+def _truth_error(world, robot, info=None, n=100) -> float:
+    """RMS error (mm) of a calibrated robot against the world's noise-free truth on n fresh poses, over the
+    noise RMS per pose."""
+    camp = world.campaign(n=n, payload_kg=None if info is None else info["payload_kg"],
+                          temperature=bool(info and info["temperature"]))
+    camp.meas.points = camp.truth.points
+    return evaluate(robot, camp.meas)["rms_mm"] / world.noise_rms_mm(camp.meas.joints)
+
+
+def _said(d) -> list:
+    return [(f["kind"], f["joints"], round(f["gain_pct"], 1),
+             [(a["kind"], a["joints"]) for a in f.get("indistinguishable_from", [])]) for f in d.findings]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", NAMED)
+def test_hidden_cause_is_found_blind(kind, seed):
+    size = _size(seed)
+    world, info, meas = _world(kind, size, seed)
+    d = diagnose(SPRAY, meas)
+    where = (f"{kind} on {info['joints']} ({info['parameters']}) at {size:.1f}x noise, seed {seed}: expected "
+             f"{info['expected']}, said {_said(d)}")
+    f = _named(d.findings, info["expected"], info["joints"])
+    assert f is not None, where
+    assert f["gain_pct"] > 0, where
+    # with the cause in the model, fresh poses are predicted closer to the truth than the tracker measures
+    ratio = _truth_error(world, d.calibration, info)
+    assert ratio < TRUTH_LIMIT, (ratio, where)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", OFF_VOCABULARY)
+def test_cause_without_a_name_is_never_silent(kind, seed):
+    size = _size(seed)
+    world, info, meas = _world(kind, size, seed)
+    d = diagnose(SPRAY, meas)
+    assert d.findings, (f"{kind} on {info['joints']} at {size:.1f}x noise, seed {seed}: {d.explanation}")
+
+
+@pytest.mark.slow
+def test_no_cause_means_no_finding(seed):
+    """Wrong masses in the model, a robot repeating 2.5x worse than usual and two bad readings: nothing to find,
+    the bad readings are named."""
+    for k in range(2):
+        world = null_world(SPRAY, seed + k, outliers=2)
+        camp = world.campaign(n=150)
+        d = diagnose(SPRAY, camp.meas)
+        assert d.findings == [], (seed + k, _said(d), d.explanation)
         assert "No cause was found" in d.explanation
-        g = d.geometric.metrics()["holdout_rms_mm"]
-        assert 0.8 < g / d.noise_floor_mm < 1.25
+        bad = {camp.meas.point_ids[i] for i in camp.truth.outliers}
+        assert bad <= set(d.calibration.metrics()["outliers"]), (seed + k, bad, d.calibration.metrics()["outliers"])
+        assert _truth_error(world, d.calibration) < TRUTH_LIMIT, seed + k
 
 
-def test_two_effects_together_are_both_found(seed):
-    rng = np.random.default_rng(seed)
-    twin = Twin(SPRAY, seed)
-    q = twin.sample_joints(150)
-    # one gravity-driven cause and one of another family: two gravity causes on neighbouring joints (the
-    # compliance of J4 and the bending of the short link after it) can swap places on 150 poses; their pair
+@pytest.mark.slow
+def test_two_causes_together_are_both_found(seed):
+    rng = np.random.default_rng((seed, 3))
+    world = World(SPRAY, seed)
+    # one load-driven cause and one of another family: two load-driven causes on neighbouring joints (the
+    # spring of J4 and the bending of the short link after it) can swap places on 150 poses; their pair
     # rate is measured in benchmarks/detection.py instead
-    kinds = [rng.choice(["joint_compliance", "link_deflection"]),
-             rng.choice(["cyclic_joint_error", "axis_straightness", "joint_scale"])]
-    hidden = {(k, tuple(SPRAY.joint_names[j] for j in draw_hidden_effect(twin, k, 5.0, q, rng)[0].joints))
-              for k in kinds}
-    d = diagnose(SPRAY, twin.measure(q))
+    kinds = [str(rng.choice(["joint_spring", "cantilever"])),
+             str(rng.choice(["gear_error", "rail_straightness", "encoder_scale"]))]
+    first = hide(world, kinds[0], 5.0, rng)
+    second = hide(world, kinds[1], 5.0, rng, q=first["q"])
+    hidden = {(h["expected"], tuple(sorted(h["joints"]))) for h in (first, second)}
+    d = diagnose(SPRAY, world.measure(first["q"]))
     # a finding names its cause, or says which look-alike causes this pose set cannot tell apart from it
-    found = {(f["kind"], tuple(f["joints"])) for f in d.findings}
-    found |= {(a["kind"], tuple(a["joints"])) for f in d.findings for a in f.get("indistinguishable_from", [])}
-    assert hidden <= found, (seed, hidden, [(f["kind"], f["joints"], f.get("indistinguishable_from"))
-                                            for f in d.findings])
-    assert len(d.findings) == 2, (seed, d.explanation)
+    missing = [h for h in (first, second) if _named(d.findings, h["expected"], h["joints"]) is None]
+    assert not missing, (seed, hidden, _said(d))
+    assert len(d.findings) == 2, (seed, hidden, _said(d))
 
 
 def test_any_serial_chain_works(seed):
     model = parse_model(arm6())
-    twin, effect, meas, d = _run("joint_compliance", 6.0, seed, model)
-    assert d.findings and d.findings[0]["kind"] == "joint_compliance", (seed, d.explanation)
+    world, info, meas = _world("joint_spring", 6.0, seed, model)
+    d = diagnose(model, meas)
+    assert _named(d.findings, "joint_compliance", info["joints"]), (seed, info["joints"], _said(d))
 
 
 def test_auto_answer_carries_the_contract_diagnosis_and_restores(seed):
-    twin, effect, meas, _ = _run("cyclic_joint_error", 5.0, seed)
+    world, info, meas = _world("gear_error", 5.0, seed)
     out = calibrate(SPRAY, meas, "auto")
     d = out["diagnosis"]
     assert set(d) >= {"noise_floor_mm", "geometric", "findings", "explanation"}
     assert set(d["geometric"]) >= {"rms_mm", "holdout_rms_mm"}
     f = d["findings"][0]
     assert set(f) >= {"kind", "joints", "holdout_rms_before_mm", "holdout_rms_after_mm", "gain_pct", "evidence"}
-    assert f["kind"] == "cyclic_joint_error" and f["harmonic"] == effect.harmonic
-    assert out["model"] == ["geometric", "cyclic_joint_error"]
+    where = (seed, info["parameters"], _said(type("D", (), {"findings": d["findings"]})))
+    assert f["kind"] == "cyclic_joint_error" and f["joints"] == info["joints"], where
+    assert f["harmonic"] == info["cause"].harmonic, where
+    assert out["model"] == ["geometric", "cyclic_joint_error"], where
     robot = CalibratedRobot.from_state(SPRAY, out["robot_state"])
-    val = twin.measure(n=50)
-    assert evaluate(robot, val)["rms_mm"] < 1.3 * twin.noise_rms_mm(val.points)
+    assert _truth_error(world, robot, info, n=50) < TRUTH_LIMIT, where
 
 
 def test_without_masses_the_service_says_so(seed):
@@ -95,5 +147,5 @@ def test_without_masses_the_service_says_so(seed):
     for j in doc["joints"]:
         j.pop("mass"), j.pop("com")
     model = parse_model(doc)
-    d = diagnose(model, Twin(model, seed).measure(n=100))
+    d = diagnose(model, World(model, seed).measure(n=100))
     assert any("no masses" in n for n in d.notes)

@@ -15,6 +15,7 @@ import pytest
 
 from calib_core import datasets
 from calib_core.identify import evaluate, identify
+from calib_world import KINDS
 from service import demo
 
 from .conftest import ROOT, Server, base_env
@@ -43,14 +44,16 @@ def f3(*values: float) -> tuple[str, ...]:
     return tuple(f"{v:.3f}" for v in values)
 
 
-def validation_errors(server, cal_id, model, val) -> tuple[float, float]:
-    """What POST /calibrations/{id}/predict gives on the validation poses, as the demo computes it."""
+def validation_errors(server, cal_id, model, val) -> tuple[tuple[float, float], np.ndarray]:
+    """What POST /calibrations/{id}/predict gives on the validation poses, as the demo computes it: (RMS, max)
+    and the predictions."""
     api = demo.Api(server.url, None)
     try:
-        e = demo.errors_mm(val.points, api.predict_mm(cal_id, model, val))
+        pred = api.predict_mm(cal_id, model, val)
     finally:
         api.close()
-    return e["rms_mm"], e["max_mm"]
+    e = demo.errors_mm(val.points, pred)
+    return (e["rms_mm"], e["max_mm"]), pred
 
 
 def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
@@ -88,8 +91,8 @@ def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
         model = camp.model
         before = evaluate(identify(model, camp.cal, free=("base", "tool"), folds=1), camp.val)
         assert row(story, "before calibration") == f3(before["rms_mm"], before["max_mm"])
-        geo = validation_errors(server, geo_id, model, camp.val)
-        ext = validation_errors(server, cal_id, model, camp.val)
+        geo, _ = validation_errors(server, geo_id, model, camp.val)
+        ext, ext_pred = validation_errors(server, cal_id, model, camp.val)
         assert row(story, "after the geometric model") == f3(*geo)
         if d["findings"]:
             assert row(story, "after the extended model") == f3(*ext)
@@ -105,7 +108,7 @@ def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
     assert "http://127.0.0.1:8000/docs" in story
     reached = re.search(r"reaches (\d+) of (\d+ targets|them) within 0\.01 mm", story)
     assert reached and int(reached.group(1)) >= 0.95 * ext_n(story), story
-    return {"story": story, "cal": cal, "before": before, "geo": geo, "ext": ext}
+    return {"story": story, "cal": cal, "before": before, "geo": geo, "ext": ext, "ext_pred": ext_pred}
 
 
 def ext_n(story: str) -> int:
@@ -119,7 +122,8 @@ def test_demo_tells_the_whole_story(tmp_path):
     r = calib("demo", "--seed", "5", cwd=tmp_path, env=base_env(f"sqlite:///{db}"))
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     camp = demo.simulated(None, 5)
-    kind, effect, _ = camp.hidden
+    hidden = camp.hidden
+    assert hidden["kind"] in KINDS and hidden["cause"] in camp.twin.causes
     got = check_story(r.stdout, r.stderr, tmp_path, db, camp)
     story, d = got["story"], got["cal"]["diagnosis"]
     assert "150 poses stored" in story and "errors on the 100 validation poses" in story
@@ -127,11 +131,19 @@ def test_demo_tells_the_whole_story(tmp_path):
     # the story's arc: calibration removes the millimetres, the extended model the structure left
     assert got["before"]["rms_mm"] > 10 * got["geo"][0] > 10 * got["ext"][0]
     assert got["ext"][0] < 1.5 * d["noise_floor_mm"]
-    # the twin's secret is told, and the named cause is the hidden one
-    joints = ", ".join(camp.model.joint_names[j] for j in effect.joints)
-    assert d["findings"][0]["kind"] == kind
-    assert re.search(rf"The twin hid {kind.replace('_', ' ')} on {joints}, sized [\d.]+x the noise -> named correctly",
-                     story), story
+    # the twin's secret is told from the world's own description, and the named cause is the hidden one
+    kind, joints = hidden["kind"], ", ".join(hidden["joints"])
+    assert d["findings"][0]["kind"] == hidden["expected"]
+    assert re.search(rf"The twin hid {kind.replace('_', ' ')}( on {joints})?, sized {hidden['size']:.1f}x the noise "
+                     rf"-> named correctly", story), story
+    assert f"The cause: {hidden['parameters']['cause']}(" in story
+    # the validation error against the world's noise-free truth, as the demo computes it
+    truth = re.search(r"noise-free truth .*?the extended one " + NUM + r" mm RMS, for a measurement noise of " + NUM,
+                      story)
+    assert truth, story
+    ext_truth = np.sqrt(np.mean(np.sum((camp.val_truth - got["ext_pred"]) ** 2, axis=1)))
+    assert truth.group(1) == f"{ext_truth:.3f}" and truth.group(2) == f"{camp.twin.noise_rms_mm(camp.val.joints):.3f}"
+    assert ext_truth < 0.6 * camp.twin.noise_rms_mm(camp.val.joints)
 
 
 @pytest.mark.skipif(not datasets.available(), reason="the shared real datasets are not present")
@@ -148,7 +160,7 @@ def test_demo_on_real_measurements(tmp_path):
     story = got["story"]
     assert "on real measurements: robot motoman_ma1400_right_leica" in story
     assert "176 poses (30 %) held out at random (seed 0) before the upload" in story
-    assert "410 poses stored" in story and "The twin" not in story
+    assert "410 poses stored" in story and "The twin" not in story and "noise-free truth" not in story
     assert got["cal"]["metrics"]["n_poses"] == 410
     assert got["geo"][0] < got["before"]["rms_mm"]
     # the uploaded poses are exactly the 70 %: nothing of the validation set reached the service
@@ -174,4 +186,12 @@ def test_demo_help_lists_the_options():
     assert r.returncode == 0
     for opt in ("--effect", "--seed", "--robot", "--data", "--report", "--keep-serving"):
         assert opt in r.stdout
-    assert np.all([k in r.stdout for k in ("joint_compliance", "thermal_drift", "none")])
+    assert np.all([k in r.stdout for k in demo.EFFECTS])
+
+
+def test_effect_choices_are_the_world_kinds():
+    """`--effect` names the world's kinds; the CLI spells them out (no numpy at `calib --help`)."""
+    from service import cli
+
+    assert demo.EFFECTS == (*KINDS, "none")
+    assert tuple(cli.HIDDEN_KINDS) == KINDS

@@ -14,7 +14,8 @@ import pytest
 
 from calib_core import Twin, parse_model, write_measurements
 from calib_core.robots import spray7
-from calib_core.twin import draw_hidden_effect
+from calib_world import World
+from calib_world.scenarios import hide
 from service.report.figures import sig
 
 from .conftest import wait_for
@@ -40,12 +41,12 @@ def run_job(server, ms_id: str, mode: str) -> dict:
 def calibrations(server) -> dict:
     """An auto calibration of a twin hiding a backlash (one finding with a plot) and a geometric one."""
     model = parse_model(spray7())
-    twin = Twin(model, 3)
-    q = twin.sample_joints(150)
-    draw_hidden_effect(twin, "backlash", 5.0, q, np.random.default_rng(3))
+    world = World(model, 3)
+    info = hide(world, "hard_backlash", 5.0, np.random.default_rng(3), payload_kg=[0, 10, 20])
+    meas = world.measure(info["q"], payload_kg=[0, 10, 20])
     rid = server.client.post("/robots", json=spray7()).json()["id"]
     r = server.client.post(f"/robots/{rid}/measurements",
-                           files={"file": ("b.csv", write_measurements(twin.measure(q), model))})
+                           files={"file": ("b.csv", write_measurements(meas, model))})
     assert r.status_code == 201, r.text
     ms = r.json()["id"]
     return {"auto": run_job(server, ms, "auto"), "geometric": run_job(server, ms, "geometric")}

@@ -1,0 +1,55 @@
+"""How well a calibration predicts the tool point at new poses: delta-method propagation of its covariance.
+
+The predicted point p(q) = FK(x, q + Phi_q theta) + Phi_p theta depends on the solved geometric parameters
+x[free] and the effect parameters theta. Its Jacobian at new poses is the coupled Jacobian of the fit
+(identify._fit): the geometric columns dp/dx[free] at q + dq, and the effect columns J_q Phi_q + Phi_p, with
+the effect bases evaluated on the calibrated geometry (as CalibratedRobot.predict does). Then
+cov(p_i) = G_i cov(x[free], theta) G_i^T per pose, (3, 3) mm^2.
+
+Like the parameter std, this is conditional on the identified model being the right one: it says how much the
+parameters' estimation error moves the prediction, not what a cause the model lacks adds (see
+identify.UNCERTAINTY_NOTE). Directions the data and the prior leave undetermined carry no variance in
+`solution.cov` (see solve.py): a prediction along them is not covered.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import kinematics as K
+from .identify import Calibration, _columns, effect_bases
+from .io import Measurements
+
+
+def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
+    """d predicted point / d [x[free], effect parameters] at the poses, (N, 3, p) with p = len(cal.solution.x)."""
+    q = np.atleast_2d(np.asarray(joints, float))
+    model = cal.model
+    if not cal.effects:
+        return K.Chain(model, cal.x, q, cal.R0).jacobian()[:, :, cal.free]
+    meas = _columns(q, columns)
+    Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects), cal.x, cal.R0)
+    theta = cal.solution.x[len(cal.free):]
+    chain = K.Chain(model, cal.x, q + Phi_q @ theta, cal.R0)
+    J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
+    return np.concatenate([chain.jacobian()[:, :, cal.free], J_eff], axis=2)
+
+
+def prediction_cov(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
+    """Covariance (N, 3, 3) mm^2 of the predicted point at each pose from the parameters' covariance."""
+    G = prediction_jacobian(cal, joints, columns)
+    C = cal.solution.cov
+    out = np.einsum("nip,pq,njq->nij", G, C, G)
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+def prediction_std_mm(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
+    """1-sigma (N, 3) mm of the predicted point per coordinate (measurement frame) at each pose."""
+    cov = prediction_cov(cal, joints, columns)
+    return np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0.0, None))
+
+
+def z_scores(cal: Calibration, joints, truth: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
+    """(predicted - truth) / prediction std per coordinate, (N, 3): RMS ~ 1 when the std is honest."""
+    pred = cal.predict(np.atleast_2d(np.asarray(joints, float)), columns)
+    std = prediction_std_mm(cal, joints, columns)
+    return (pred - np.asarray(truth, float)) / np.maximum(std, 1e-300)
