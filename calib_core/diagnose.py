@@ -27,6 +27,7 @@ from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import probes, step_candidates
 from .identify import Calibration, effect_bases, identify, tracker_sigma_mm
+from .select import select_geometry
 from .io import Measurements
 from .model import RobotModel
 
@@ -123,7 +124,7 @@ class Diagnosis:
 
     def model_error_mm(self, cal: Calibration) -> float:
         """De-noised model error: the root of held-out mean square distance minus the floor's (mm)."""
-        return float(np.sqrt(max(np.mean(cal.holdout_residual_mm**2) - self.noise_floor_mm**2, 0.0)))
+        return float(np.sqrt(max(holdout_ms(cal) - self.noise_floor_mm**2, 0.0)))
 
     def to_dict(self) -> dict:
         g, f = self.geometric.metrics(), self.calibration.metrics()
@@ -147,6 +148,42 @@ class Diagnosis:
                 "final_holdout_mm": self.calibration.holdout_residual_mm.tolist(),
             },
         }
+
+
+@dataclass(frozen=True)
+class _Fitter:
+    """identify() on the diagnosis's data with one set of options: the geometry chosen on held-out evidence
+    (free parameters, prior strength), the loss and the folds."""
+
+    model: RobotModel
+    meas: Measurements
+    loss: str | None
+    folds: int
+    free: tuple[str, ...] | None
+    prior_scale: float
+
+    def __call__(self, effects=(), x_ref=None, folds: int | None = None) -> Calibration:
+        return identify(self.model, self.meas, effects=tuple(effects), loss=self.loss, x_ref=x_ref, free=self.free,
+                        prior_scale=self.prior_scale, folds=self.folds if folds is None else folds)
+
+
+def _robust_sigma(cal: Calibration, sigma: np.ndarray) -> np.ndarray:
+    """Per-pose sigma with the fit's robust weights folded in: a pose the loss down-weighted as an outlier
+    counts as little in the tests as it did in the fit."""
+    return sigma / np.sqrt(np.maximum(cal.solution.weights, 1e-6))
+
+
+def _inliers(*cals: Calibration) -> np.ndarray:
+    """Poses none of the fits named as outliers (held-out statistics leave the outliers out)."""
+    keep = np.ones(len(cals[0].holdout_residual_mm), bool)
+    for c in cals:
+        keep[c.solution.outliers] = False
+    return keep
+
+
+def holdout_ms(cal: Calibration) -> float:
+    """Mean square held-out distance (mm^2) over the poses that are not outliers."""
+    return float(np.mean(cal.holdout_residual_mm[_inliers(cal)] ** 2))
 
 
 def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray):
@@ -187,6 +224,7 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     Also returns the share of the residual a smooth joint-space field (ridge) explains: a named cause
     that explains far less than the field is only picking up part of a broader structure."""
     model = cal.model
+    sigma = _robust_sigma(cal, sigma)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
     ctx = Context(model, K.Chain(model, x_ref, meas.joints, cal.R0), meas)
     Jq = chain.joint_jacobian()
@@ -240,7 +278,8 @@ def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
 def holdout_gain(before: Calibration, after: Calibration) -> tuple[float, float]:
     """One-sided paired test over poses that the k-fold held-out error dropped: (p-value, drop of the mean
     square held-out distance in mm^2)."""
-    d = before.holdout_residual_mm**2 - after.holdout_residual_mm**2
+    keep = _inliers(before, after)
+    d = before.holdout_residual_mm[keep] ** 2 - after.holdout_residual_mm[keep] ** 2
     drop = float(d.mean())
     sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
     if sd <= 0.0:
@@ -248,7 +287,7 @@ def holdout_gain(before: Calibration, after: Calibration) -> tuple[float, float]
     return float(stats.t.sf(drop / (sd / np.sqrt(len(d))), len(d) - 1)), drop
 
 
-def _best_of_lookalikes(c, trial, ranked, thresholds, model, meas, chosen, loss, folds, x_ref, share=None):
+def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref, share=None):
     """Some causes look alike over a limited range (a scale error and a first harmonic, a short link's
     bending and the compliance of the joint before it): among the significant candidates that explain
     nearly as much as the winner, keep the best on held-out poses and name the ones it cannot beat."""
@@ -257,8 +296,7 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, meas, chosen, loss,
     rivals = [a for a in ranked if a is not c and a.log_p <= thresholds.get(id(a.effect), -np.inf)
               and a.explained >= share * c.explained]
     for alt in rivals[:MAX_LOOKALIKES]:
-        tried.append((alt, identify(model, meas, effects=tuple(chosen + [alt.effect]), loss=loss, folds=folds,
-                                    x_ref=x_ref)))
+        tried.append((alt, fit(chosen + [alt.effect], x_ref)))
     tried.sort(key=lambda t: t[1].metrics()["holdout_rms_mm"])
     best_fit = tried[0][1]
     # parsimony: the simplest form that held-out poses cannot show to be worse than the best one
@@ -276,7 +314,7 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, meas, chosen, loss,
 
 PLAY_PASSES = 2
 """Times the play's switch is classified again on the residual with the fitted play put back."""
-SOFT_PLAY = (0.1, 0.3)
+SOFT_PLAY = (0.07, 0.15, 0.3, 0.5)
 """Transitions (share of the largest load) of a soft gear play, tried when a play or a spring is found."""
 
 
@@ -303,13 +341,13 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
     return out
 
 
-def _refine(c, trial, chosen, load_pool, play_pool, model, meas, loss, folds, x_ref):
+def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     """Swap the accepted cause for a richer form of it when held-out poses say so: among the forms that are
     significantly better than it (paired test), the best on held-out poses."""
     best = None
     for alt in _refinements(c.effect, load_pool, play_pool):
         try:
-            t = identify(model, meas, effects=tuple(chosen + [alt]), loss=loss, folds=folds, x_ref=x_ref)
+            t = fit(chosen + [alt], x_ref)
         except ValueError:
             continue
         p, drop = holdout_gain(trial, t)
@@ -321,13 +359,13 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, meas, loss, folds, x_
     return Candidate(**{**c.__dict__, "effect": best[0], "label": best[0].label(model)}), best[1]
 
 
-def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, loss, folds, floor):
+def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, floor):
     """Greedy order can mislead when causes overlap: test each finding again against its look-alikes with
     every other finding in the model; swap it for a better one, or name the ones it cannot beat."""
     k = 0
     while k < len(chosen):
         others = chosen[:k] + chosen[k + 1:]
-        base = identify(model, meas, effects=tuple(others), loss=loss, folds=folds, x_ref=current.x)
+        base = fit(others, current.x)
         if holdout_gain(base, current)[0] > HOLDOUT_ALPHA:  # the others explain what it did: it goes
             del chosen[k], findings[k]
             current = base
@@ -341,11 +379,11 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, loss, f
         if mine is None:
             continue
         thresholds = _thresholds(rest, alpha)
-        c, trial, alike = _best_of_lookalikes(mine, current, ranked, thresholds, model, meas, others, loss, folds,
-                                              current.x, share=0.5)
+        c, trial, alike = _best_of_lookalikes(mine, current, ranked, thresholds, model, fit, others, current.x,
+                                              share=0.5)
         if c is not mine:
             chosen[k - 1] = c.effect
-            current = identify(model, meas, effects=tuple(chosen), loss=loss, folds=folds, x_ref=current.x)
+            current = fit(chosen, current.x)
         findings[k - 1] = _finding(c, model, base, current, floor, alike, meas)
     return current
 
@@ -375,8 +413,8 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     shown = ", ".join(f"{p['name']} = {p['value']:.4g} +/- {p['std']:.2g} {p['unit']}" for p in params[:4])
     when = _when(e, meas) if meas is not None else ""
     p_gain, _ = holdout_gain(before, after)
-    mb = float(np.sqrt(max(np.mean(before.holdout_residual_mm**2) - floor**2, 0.0)))
-    ma = float(np.sqrt(max(np.mean(after.holdout_residual_mm**2) - floor**2, 0.0)))
+    mb = float(np.sqrt(max(holdout_ms(before) - floor**2, 0.0)))
+    ma = float(np.sqrt(max(holdout_ms(after) - floor**2, 0.0)))
     evidence = (f"{e.explain(model)}{' ' + when if when else ''}: it explains {100 * c.explained:.0f} % of the "
                 f"remaining residual (F = {c.F:.1f}, p = {c.p_value:.1e}); on held-out poses the error drops "
                 f"{hb:.3f} -> {ha:.3f} mm (paired p = {p_gain:.1e}) and the model error beyond the noise floor "
@@ -403,6 +441,7 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
 def _load_pool(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> dict[int, LoadCompliance]:
     """Per joint, the compliance under a gravity load identified from the data (see effects/gravity.py)."""
     model = cal.model
+    sigma = _robust_sigma(cal, sigma)
     _, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
     ref = K.Chain(model, x_ref, meas.joints, cal.R0)
     Jq = chain.joint_jacobian()
@@ -418,6 +457,7 @@ def _load_pool(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: n
 def _lateral(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> list[Effect]:
     """The lateral elasticity of every joint at once: bearings and links tilting under the bending moment."""
     model = cal.model
+    sigma = _robust_sigma(cal, sigma)
     if model.n_joints < 2:
         return []
     _, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
@@ -445,11 +485,12 @@ def _distributed(load_pool: dict[int, LoadCompliance]) -> list[Effect]:
 
 
 def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray,
-                         joints: list[int]) -> list[Backlash]:
+                         joints: list[int], fit: "_Fitter") -> list[Backlash]:
     """Backlash whose switch follows the load identified from the data: per joint, a linear classifier of the
     sign of the residual along that joint's motion on the gravity regressor (started from the model's
     statics where there are masses). Its search is paid for in the F-test (`search_dof`)."""
     model = cal.model
+    sigma = _robust_sigma(cal, sigma)
     r, _, chain = _weighted_system(cal, meas, sigma, x_ref)
     R = r.reshape(-1, 3) * sigma[:, None]
     Jq = chain.joint_jacobian()
@@ -486,11 +527,11 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
             play = Backlash((j,), transition=Backlash.TRANSITION_SHARE, search_dof=rank,
                             load_coef=tuple(float(v) for v in coef / np.abs(load).max()))
             try:  # fit it, then find the switch again on the residual with the play put back (partial residual)
-                fit = identify(model, meas, effects=tuple(cal.effects) + (play,), folds=0, x_ref=x_ref)
+                fitted = fit(tuple(cal.effects) + (play,), x_ref, folds=0)
             except ValueError:
                 break
-            step = 0.5 * fit.effect_values[-1][0] * np.tanh(load / np.abs(load).max() / play.transition)
-            partial = meas.points - fit.predict(meas.joints, meas) + col * step[:, None]
+            step = 0.5 * fitted.effect_values[-1][0] * np.tanh(load / np.abs(load).max() / play.transition)
+            partial = meas.points - fitted.predict(meas.joints, meas) + col * step[:, None]
         if play is not None:
             out.append(play)
     return out
@@ -518,7 +559,7 @@ def _switch(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta0: np.ndarray)
 
 def _excess(cal: Calibration, floor: float) -> float:
     """p-value that the held-out residual is no larger than the noise floor (chi-square on 3N)."""
-    h = cal.holdout_residual_mm
+    h = cal.holdout_residual_mm[_inliers(cal)]
     N = len(h)
     p = len(cal.solution.x)
     inflate = 1.0 + p / max(N - p / 3.0, 1.0)  # held-out poses carry the fitted parameters' error too
@@ -577,7 +618,11 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             notes.append(f"{len(ids)} pose(s) disagree with the rest by far more than the noise and were "
                          f"down-weighted as outliers (Huber loss): {', '.join(ids[:20])}"
                          f"{' ...' if len(ids) > 20 else ''}")
-    geo = identify(model, meas, loss=loss, folds=folds)
+    selection = select_geometry(model, meas, loss=loss, folds=folds)
+    geo = selection.calibration
+    fit = _Fitter(model, meas, loss, folds, selection.free, selection.prior_scale)
+    if not selection.helps:
+        notes.append(selection.note)
     floor, note, basis = noise_floor_mm(meas, sigma, repeatability_mm)
     sigma = geo.sigma_mm  # screen with the weights of the fit: noise plus what the geometry leaves
     named, more = candidates(model, meas)
@@ -601,7 +646,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                   and isinstance(c.effect, (JointCompliance, LoadCompliance, Backlash))
                   and c.log_p <= thresholds[id(c.effect)]}
         plays = _identified_backlash(current, meas, sigma, x_ref, sorted(j for j in active if not any(
-            isinstance(e, Backlash) and e.joints == (j,) for e in chosen)))
+            isinstance(e, Backlash) and e.joints == (j,) for e in chosen)), fit)
         play_pool = {b.joints[0]: b for b in plays}
         if plays:
             pool += plays
@@ -619,20 +664,19 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                                                f"field explains {100 * field_share:.0f} %: part of a broader structure"})
                 continue
             try:
-                trial = identify(model, meas, effects=tuple(chosen + [c.effect]), loss=loss, folds=folds, x_ref=x_ref)
+                trial = fit(chosen + [c.effect], x_ref)
             except ValueError as exc:
                 rejected.append({**who, "why": str(exc)})
                 continue
             p_gain, drop = holdout_gain(current, trial)
-            excess = np.mean(current.holdout_residual_mm**2) - floor**2
+            excess = holdout_ms(current) - floor**2
             if p_gain > HOLDOUT_ALPHA or drop < MIN_EXCESS_FRACTION * max(excess, 0.0):
                 hb, ha = current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
                 rejected.append({**who, "why": f"significant in the fit (p = {c.p_value:.1e}), but held-out poses "
                                                f"do not confirm it ({hb:.3f} -> {ha:.3f} mm, paired p = {p_gain:.1e})"})
                 continue
-            c, trial, alike = _best_of_lookalikes(c, trial, ranked, thresholds, model, meas, chosen, loss, folds,
-                                                  x_ref)
-            c, trial = _refine(c, trial, chosen, load_pool, play_pool, model, meas, loss, folds, x_ref)
+            c, trial, alike = _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref)
+            c, trial = _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref)
             findings.append(_finding(c, model, current, trial, floor, alike, meas))
             chosen.append(c.effect)
             current, accepted = trial, True
@@ -643,18 +687,18 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     for _ in range(3 if len(chosen) > 1 else 0):
         report(0.75, "revisiting each finding with the others in the model")
         before = list(chosen)
-        current = _revisit(findings, chosen, current, named + steps, model, meas, sigma, alpha, loss, folds, floor)
+        current = _revisit(findings, chosen, current, named + steps, model, meas, sigma, alpha, fit, floor)
         if chosen == before:
             break
     if chosen:  # one last joint fit with every basis on the final geometry
-        current = identify(model, meas, effects=current.effects, loss=loss, folds=folds, x_ref=current.x)
+        current = fit(current.effects, current.x)
     if unexplained and _excess(current, floor) < alpha:
         report(0.85, "looking at what the residual left follows")
         follows = _follows(current, meas, sigma, x_ref, alpha, load_pool)
-        ratio = current.metrics()["holdout_rms_mm"] / floor
+        ratio = np.sqrt(holdout_ms(current)) / floor
         if follows or basis != "assumed" or ratio > NOISE_LIKE:
             trial = None
-            fitted = fit_residual_field(model, meas, current, chosen, x_ref, loss=loss, folds=folds)
+            fitted = fit_residual_field(fit, current, chosen, x_ref)
             if fitted is not None:
                 t, rf = fitted
                 p_gain, drop = holdout_gain(current, t)
@@ -664,14 +708,15 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             if trial is not None:
                 current = trial[0]
         else:
-            new_floor = float(current.metrics()["holdout_rms_mm"])
+            new_floor = float(np.sqrt(holdout_ms(current)))
             notes.append(f"the residual ({new_floor:.3f} mm RMS held out) is above the assumed noise floor "
                          f"({floor:.3f} mm) but follows nothing: not time order, no joint, not the load, no region "
                          f"of the workspace; it looks like noise, so the robot's repeatability (or the instrument's "
                          f"noise) is probably worse than assumed. Measure some poses twice to know the floor.")
             note = f"estimated from the structure-free held-out residual (assumed floor was {floor:.3f} mm)"
             floor, basis = new_floor, "residual"
-    nominal = identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
+    nominal = next((c for label, c in selection.calibrations.items() if label == "registration"), None) \
+        or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
     d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,
                   floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss)
     d.explanation = explain(d, model)
@@ -683,8 +728,8 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
     """The `unexplained` entry: how far above the floor, what the residual follows, what a smooth field gains."""
     hb = before.metrics()["holdout_rms_mm"]
     ha = trial[0].metrics()["holdout_rms_mm"] if trial else hb
-    mb = float(np.sqrt(max(np.mean(before.holdout_residual_mm**2) - floor**2, 0.0)))
-    ma = float(np.sqrt(max(np.mean(trial[0].holdout_residual_mm**2) - floor**2, 0.0))) if trial else mb
+    mb = float(np.sqrt(max(holdout_ms(before) - floor**2, 0.0)))
+    ma = float(np.sqrt(max(holdout_ms(trial[0]) - floor**2, 0.0))) if trial else mb
     if follows:
         what = "it follows " + "; ".join(f"{f['what']} (explains {f['share_pct']:.0f} %, p = {f['p_value']:.1e})"
                                          for f in follows[:3])

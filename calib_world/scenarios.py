@@ -32,6 +32,10 @@ EXPECTED = {
 }
 """World kind -> the contract kind a correct diagnosis reports."""
 KINDS = tuple(EXPECTED)
+LOADED_SHARE = 0.05
+"""A load-driven cause is hidden only on a joint whose load varies by at least this share of the most
+loaded joint's: a vertical axis carries only the levelling error's load, and a spring sized to show
+there would be absurdly soft."""
 
 
 def _unit(r, j: int, rev: float, lin: float) -> float:
@@ -52,8 +56,8 @@ def _candidates(world: World, kind: str, q, cols, rng) -> list:
         tau = r.joint_loads(q, cols.payload_kg())
         big = np.abs(tau).max(0)
         for j in range(n):
-            if np.ptp(tau[:, j]) <= 1e-6 * max(big.max(), 1e-300):
-                continue  # no varying load on this joint
+            if np.ptp(tau[:, j]) <= LOADED_SHARE * max(np.ptp(tau, axis=0).max(), 1e-300):
+                continue  # a (nearly) vertical axis: its load is a levelling error, no spring shows there
             tmax = big[j]
             if kind == "joint_spring":
                 out.append(JointSpring(j, _unit(r, j, 1e-4, 1e-2) / tmax))

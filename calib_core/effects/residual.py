@@ -82,16 +82,15 @@ class ResidualField(Effect):
         return "a smooth error over joint space that no named cause explains"
 
 
-def fit_residual_field(model, meas, current, chosen, x_ref, *, loss=None, folds=5):
-    """Best field by held-out RMS over the length scales, fitted jointly with geometry and chosen effects."""
-    from ..identify import identify
-
+def fit_residual_field(fit, current, chosen, x_ref):
+    """Best field by held-out RMS over the length scales, fitted jointly with geometry and chosen effects
+    (`fit(effects, x_ref)` identifies on the diagnosis's data and options)."""
     best = None
     prior = max(PRIOR_STD_MM, 2.0 * current.metrics()["holdout_rms_mm"])  # ridge on the scale of the residual
     for ls in LENGTH_SCALES:
         rf = ResidualField((), length_scale=ls, prior_std=prior)
         try:
-            cal = identify(model, meas, effects=tuple(chosen) + (rf,), loss=loss, folds=folds, x_ref=x_ref)
+            cal = fit(tuple(chosen) + (rf,), x_ref)
         except ValueError:
             continue  # too few poses for the field's weights
         if best is None or cal.metrics()["holdout_rms_mm"] < best[0].metrics()["holdout_rms_mm"]:
