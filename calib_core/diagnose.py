@@ -314,8 +314,9 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
 
 PLAY_PASSES = 2
 """Times the play's switch is classified again on the residual with the fitted play put back."""
-SOFT_PLAY = (0.07, 0.15, 0.3, 0.5)
-"""Transitions (share of the largest load) of a soft gear play, tried when a play or a spring is found."""
+SOFT_PLAY = (0.002, 0.07, 0.15, 0.3, 0.5)
+"""Transitions (share of the largest load) of a sharper or a soft gear play, tried when a play or a spring
+is found (the default is 0.02)."""
 
 
 def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dict[int, Backlash]) -> list[Effect]:

@@ -15,7 +15,7 @@ def gravity_world(chain: Chain) -> np.ndarray:
     return chain.Rb @ chain.model.gravity
 
 
-def _com_world(chain: Chain) -> np.ndarray:
+def com_world(chain: Chain) -> np.ndarray:
     """COM of every body in the measurement frame, (n, N, 3) mm."""
     return chain.o_beta + np.einsum("jnab,jb->jna", chain.R, chain.model.com)
 
@@ -23,7 +23,7 @@ def _com_world(chain: Chain) -> np.ndarray:
 def distal_loads(chain: Chain, payload_kg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mass (n, N) kg and first moment (n, N, 3) kg*mm of everything beyond joint j (bodies j..n, payload)."""
     m = chain.model.mass
-    com = _com_world(chain)
+    com = com_world(chain)
     first = m[:, None, None] * com
     M = np.cumsum(m[::-1])[::-1][:, None] + payload_kg[None, :]
     S = np.cumsum(first[::-1], axis=0)[::-1] + payload_kg[None, :, None] * chain.p[None]

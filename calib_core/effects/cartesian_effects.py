@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..kinematics import _cross
-from ..statics import distal_loads, gravity_world, segment
+from ..statics import com_world, gravity_world, segment
 from .base import Basis, Context, Effect
 
 
@@ -15,9 +15,10 @@ class LinkDeflection(Effect):
     """Euler-Bernoulli cantilever: the link ending at joint k bends under what it carries and its own weight.
 
     With c = 1/(EI), u the link's direction and L its current length (it grows with a telescopic joint):
-    what it carries acts at its tip as the perpendicular force F and the moment M of the distal masses about
-    the tip, giving tip deflection c (F L^3/3 + (M x u) L^2/2) and tip rotation c (u x F L^2/2 + M L); its own
-    weight W gives c (W L^3/8) and c (u x W L^2/6) (Wang et al. 2023, section 5.1). The rotation moves the
+    every body it carries (and the payload) acts at its station s along the beam (its COM projected, within
+    0..L) as a perpendicular force F and the moment M of its offset, giving tip deflection
+    c (F s^2 (3L - s)/6 + (M x u) s (2L - s)/2) and tip rotation c (u x F s^2/2 + M s); its own weight W gives
+    c (W L^3/8) and c (u x W L^2/6) (Wang et al. 2023, section 5.1). The rotation moves the
     tool through its lever arm. Two compliances, carried load and own weight, so that mass data that are
     off by some per cent scale each part on its own."""
 
@@ -36,18 +37,23 @@ class LinkDeflection(Effect):
         ch, m = ctx.chain, ctx.model
         start, end, L = segment(ch, k)
         u = (end - start) / np.maximum(L, 1e-9)[:, None]
-        g = gravity_world(ch)
-        M, S = distal_loads(ch, ctx.meas.payload_kg())
-        F = M[k][:, None] * g  # N, everything beyond the segment end
-        Mt = _cross(S[k] - M[k][:, None] * end, np.broadcast_to(g, F.shape))  # N*mm, about the tip
-        W = (m.mass[k - 1] if k > 0 else 0.0) * np.broadcast_to(g, F.shape)  # the segment's own body
-        perp = lambda v: v - (v * u).sum(1, keepdims=True) * u  # noqa: E731
-        Fp, Wp, Mp = perp(F), perp(W), perp(Mt)
+        g = np.broadcast_to(gravity_world(ch), u.shape)
+        # every body beyond the link and the payload, each acting at its station along the beam
+        pts = np.concatenate([com_world(ch)[k:], ch.p[None]], axis=0)  # (b, N, 3) mm
+        mass = np.concatenate([np.broadcast_to(m.mass[k:, None], (m.n_joints - k, len(L))),
+                               ctx.meas.payload_kg()[None]], axis=0)  # (b, N) kg
+        F = mass[..., None] * g  # N
+        station = np.clip(((pts - start) * u).sum(-1), 0.0, L)  # (b, N) mm
+        Mo = _cross(pts - (start + station[..., None] * u), F)  # N*mm, the moment of the load's offset
+        perp = lambda v: v - (v * u).sum(-1, keepdims=True) * u  # noqa: E731
+        Fp, Mp, s = perp(F), perp(Mo), station[..., None]
         L1 = L[:, None]
+        defl = (Fp * s**2 * (3 * L1 - s) / 6 + _cross(Mp, u) * s * (2 * L1 - s) / 2).sum(0)
+        turn = (_cross(u, Fp) * s**2 / 2 + Mp * s).sum(0)
         lever = ch.p - end
-        carried_rot = _cross(u, Fp) * L1**2 / 2 + Mp * L1
-        carried = Fp * L1**3 / 3 + _cross(Mp, u) * L1**2 / 2 + _cross(carried_rot, lever)
-        own = Wp * L1**3 / 8 + _cross(_cross(u, Wp) * L1**2 / 6, lever)
+        carried = defl + _cross(turn, lever)
+        W = perp((m.mass[k - 1] if k > 0 else 0.0) * g)  # the segment's own body, spread evenly
+        own = W * L1**3 / 8 + _cross(_cross(u, W) * L1**2 / 6, lever)
         return Basis(None, np.stack([carried, own], axis=2), np.linalg.norm(carried + own, axis=1),
                      f"bending of the link ending at {m.joint_names[k]} per unit 1/(EI) (mm*N*mm^2)")
 
