@@ -35,8 +35,9 @@ ALPHA = 0.01
 """Family-wise false-alarm rate of one search round (Bonferroni within each family of candidates)."""
 TIME_SHARE = 0.2
 """Share of ALPHA spent on steps in time order; the rest on the named causes."""
-HOLDOUT_ALPHA = 0.01
-"""A cause is kept only if the per-pose held-out errors drop with this one-sided significance."""
+HOLDOUT_ALPHA = 0.05
+"""A cause is kept only if the per-pose held-out errors drop with this one-sided significance (on top of
+the Bonferroni F-test in the fit, which carries the false-alarm control)."""
 DEFAULT_REPEATABILITY_MM = 0.02
 """Pose repeatability assumed when the data holds no repeated poses (ISO 9283 RP of an industrial robot)."""
 MIN_EXCESS_FRACTION = 0.1
@@ -121,14 +122,34 @@ class Diagnosis:
     notes: list[str] = field(default_factory=list)
     explanation: str = ""
     loss: str | None = None
+    selection: dict = field(default_factory=dict)  # how the geometric model's size was chosen (held out)
 
     def model_error_mm(self, cal: Calibration) -> float:
         """De-noised model error: the root of held-out mean square distance minus the floor's (mm)."""
         return float(np.sqrt(max(holdout_ms(cal) - self.noise_floor_mm**2, 0.0)))
 
+    def gaps(self) -> list[str]:
+        """Parameters the model's structure identifies but this pose set cannot."""
+        ident = self.geometric.identifiability
+        return [ident.names[i] if isinstance(i, (int, np.integer)) else i
+                for i in getattr(ident, "unidentifiable", [])]
+
+    def verdict(self) -> str:
+        """The diagnosis in a few words, for a headline: the same judgement as the explanation and the JSON."""
+        if self.findings:
+            left = any(f["kind"] == "unexplained" for f in self.findings)
+            return "causes found" + ("; structure left that no named cause explains" if left else "")
+        gaps = self.gaps()
+        if gaps:
+            return f"none found, but this pose set cannot identify {len(gaps)} parameter(s): valid only near it"
+        if self.floor_basis == "residual":
+            return "none: the residual follows nothing (noise above the assumed floor)"
+        return "none: at the noise floor, the geometric model is complete"
+
     def to_dict(self) -> dict:
         g, f = self.geometric.metrics(), self.calibration.metrics()
         return {
+            "verdict": self.verdict(),
             "noise_floor_mm": self.noise_floor_mm,
             "noise_floor_basis": self.noise_note,
             "noise_floor_source": self.floor_basis,
@@ -142,6 +163,7 @@ class Diagnosis:
             "notes": self.notes,
             "explanation": self.explanation,
             "robust_loss": self.loss,
+            "model_selection": self.selection,
             "per_pose": {
                 "point": list(self.calibration.point_ids),
                 "geometric_holdout_mm": self.geometric.holdout_residual_mm.tolist(),
@@ -196,7 +218,7 @@ def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_
     if cal.effects:
         from .identify import effect_bases
 
-        Pq, Pp = effect_bases(model, meas, list(cal.effects), x_ref, cal.R0)
+        Pq, Pp = effect_bases(model, meas, list(cal.effects), x_ref if cal.x_basis is None else cal.x_basis, cal.R0)
         cols.append(np.einsum("nij,njk->nik", chain.joint_jacobian(), Pq) + Pp)
     J = (np.concatenate(cols, axis=2) / sigma[:, None, None]).reshape(len(r.ravel()), -1)
     norms = np.linalg.norm(J, axis=0)
@@ -719,7 +741,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     nominal = next((c for label, c in selection.calibrations.items() if label == "registration"), None) \
         or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
     d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,
-                  floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss)
+                  floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss,
+                  selection=selection.to_dict())
     d.explanation = explain(d, model)
     report(1.0, "diagnosis done")
     return d
@@ -756,8 +779,7 @@ def explain(d: Diagnosis, model: RobotModel) -> str:
     g = d.geometric.metrics()
     head = (f"After the geometric calibration the robot's held-out error is {g['holdout_rms_mm']:.3f} mm RMS "
             f"against a noise floor of {d.noise_floor_mm:.3f} mm (what a perfect model would leave: {d.noise_note}).")
-    ident = d.geometric.identifiability
-    gaps = [ident.names[i] if isinstance(i, (int, np.integer)) else i for i in getattr(ident, "unidentifiable", [])]
+    gaps = d.gaps()
     caveat = (f" This pose set cannot identify {len(gaps)} parameter(s) ({', '.join(gaps[:6])}"
               f"{', ...' if len(gaps) > 6 else ''}): the model is valid only near the measured poses."
               if gaps else "")

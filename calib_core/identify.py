@@ -52,11 +52,14 @@ class CalibratedRobot:
     R0: np.ndarray  # base reference rotation
     effects: tuple[Effect, ...] = ()
     effect_values: tuple[np.ndarray, ...] = ()
+    x_basis: np.ndarray | None = None  # the geometry the effect bases were fitted on (default: x)
 
     def effect_offsets(self, joints: np.ndarray, columns: Measurements | None = None):
-        """Joint offsets (N, n) and displacements (N, 3) mm of the identified effects at these joints."""
+        """Joint offsets (N, n) and displacements (N, 3) mm of the identified effects at these joints, with
+        the bases on the geometry they were fitted on (so a prediction is the fitted model, exactly)."""
         meas = _columns(joints, columns)
-        ctx = Context(self.model, K.Chain(self.model, self.x, joints, self.R0), meas)
+        x = self.x if self.x_basis is None else self.x_basis
+        ctx = Context(self.model, K.Chain(self.model, x, joints, self.R0), meas)
         return apply(list(self.effects), list(self.effect_values), ctx)
 
     def predict(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
@@ -72,14 +75,19 @@ class CalibratedRobot:
 
     def to_state(self) -> dict:
         """JSON-able state; `from_state(model, state)` restores it exactly."""
-        return {"x": self.x.tolist(), "R0": self.R0.tolist(),
-                "effects": [effect_state(e, v) for e, v in zip(self.effects, self.effect_values)]}
+        out = {"x": self.x.tolist(), "R0": self.R0.tolist(),
+               "effects": [effect_state(e, v) for e, v in zip(self.effects, self.effect_values)]}
+        if self.x_basis is not None:
+            out["x_basis"] = self.x_basis.tolist()
+        return out
 
     @classmethod
     def from_state(cls, model: RobotModel, state: dict) -> "CalibratedRobot":
         effects = [effect_from_state(d) for d in state.get("effects", [])]
+        basis = state.get("x_basis")
         return cls(model, np.array(state["x"], float), np.array(state["R0"], float),
-                   tuple(e for e, _ in effects), tuple(v for _, v in effects))
+                   tuple(e for e, _ in effects), tuple(v for _, v in effects),
+                   None if basis is None else np.array(basis, float))
 
 
 def _columns(joints: np.ndarray, columns: Measurements | None) -> Measurements:
@@ -106,6 +114,7 @@ class Calibration:
     model_error_mm: float = 0.0  # per-axis std of what the model leaves beyond the measurement noise
     sigma0_measurement: float | None = None  # sigma0 of the fit weighted by the measurement noise alone
     prior_scale: float = 1.0  # multiplier of the default prior precision of the joint parameters
+    x_basis: np.ndarray | None = None  # the geometry the effect bases were evaluated on
 
     @property
     def warnings(self) -> list[str]:
@@ -118,7 +127,8 @@ class Calibration:
 
     @property
     def robot(self) -> CalibratedRobot:
-        return CalibratedRobot(self.model, self.x, self.R0, self.effects, self.effect_values)
+        return CalibratedRobot(self.model, self.x, self.R0, self.effects, self.effect_values,
+                               self.x_basis if self.effects else None)
 
     def predict(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
         """Measured point (N, 3) mm for joints (N, n) in internal units."""
@@ -381,7 +391,8 @@ def identify(
     x[idx] = sol.x[: len(idx)]
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
                       point_ids=list(meas.point_ids), effects=tuple(effects), sigma_mm=sigma,
-                      model_error_mm=s_model, sigma0_measurement=sigma0_measurement, prior_scale=prior_scale)
+                      model_error_mm=s_model, sigma0_measurement=sigma0_measurement, prior_scale=prior_scale,
+                      x_basis=x_ref if effects else None)
     if folds > 1 and meas.n_poses >= 2 * folds:
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
                                                  eprior, prior_scale=prior_scale)

@@ -27,7 +27,8 @@ def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None =
     if not cal.effects:
         return K.Chain(model, cal.x, q, cal.R0).jacobian()[:, :, cal.free]
     meas = _columns(q, columns)
-    Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects), cal.x, cal.R0)
+    Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects), cal.x if cal.x_basis is None else cal.x_basis,
+                                cal.R0)
     theta = cal.solution.x[len(cal.free):]
     chain = K.Chain(model, cal.x, q + Phi_q @ theta, cal.R0)
     J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p

@@ -154,7 +154,7 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
         w(f'<div class="card"><div class="k">noise floor (what a perfect model leaves)</div>'
           f'<div class="v">{mm(acc["noise_floor_mm"])} <small>mm RMS</small></div></div>')
     if d:
-        causes = "; ".join(finding_title(f) for f in findings) or "none: the geometric model is complete"
+        causes = "; ".join(finding_title(f) for f in findings) or d.get("verdict") or "none"
         w(f'<div class="card"><div class="k">cause{"s" if len(findings) > 1 else ""} found</div>'
           f'<div class="v cause">{_e(causes)}</div></div>')
     w("</div>")
@@ -200,7 +200,7 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
           f'(fit {mm(gd.get("rms_mm"))} mm RMS) against a noise floor of {mm(d.get("noise_floor_mm"))} mm'
           f'{" (" + _e(d["noise_floor_basis"]) + ")" if d.get("noise_floor_basis") else ""}.</p>')
         if not findings:
-            w("<p><b>No cause found</b>: nothing the data can show beyond the geometric model.</p>")
+            w(f"<p><b>No cause found</b>: {_e(d.get('verdict') or 'nothing the data can show beyond the geometric model')}.</p>")
         for k, f in enumerate(findings, 1):
             w(f'<div class="finding"><h3>Finding {k}: {_e(finding_title(f))} <span class="tag">{_e(f.get("kind"))}</span></h3>')
             w(f'<p>Held-out error {mm(f.get("holdout_rms_before_mm"))} mm → {mm(f.get("holdout_rms_after_mm"))} mm RMS: '
