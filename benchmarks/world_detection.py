@@ -23,7 +23,7 @@ Per draw (robot x world kind x size x draw, each seeded from (seed-base, robot, 
     geometric Jacobian at the calibration poses, the columns of the best candidate of the expected kind on
     the hidden joint] (candidates(model, meas), single-joint forms preferred, plus the load-identified
     compliance the diagnosis builds from the data).  'n/a' for off-vocabulary (unexplained) kinds.
-Flags: right (a finding of the expected kind on the hidden joint, or listing it as indistinguishable; for
+Flags: right (a finding of the expected kind on exactly the hidden joints, or listing them as indistinguishable; for
 'unexplained' kinds: findings not empty), misnamed (findings but none right), empty (no finding).
 No-effect worlds: null_world(model, seed, outliers=2) (wrong masses, 2.5x repeatability, 2 bad readings):
 any finding is false; the calibration's named outliers are compared with the world's.
@@ -110,7 +110,7 @@ def judge(expected: str, hidden: list[str], findings: list[dict]) -> dict:
         return {"right": True, "misnamed": False, "empty": False}
 
     def hit(kind, joints):
-        return kind == expected and (not hidden or bool(set(hidden) & set(joints)))
+        return kind == expected and (not hidden or set(hidden) == set(joints))  # a spread-out cause is not a name
 
     right = any(hit(f["kind"], f["joints"]) or any(hit(a["kind"], a["joints"]) for a in f["indistinguishable_from"])
                 for f in findings)

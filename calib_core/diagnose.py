@@ -25,7 +25,7 @@ from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, _as_tuple, g
                               load_mix_for, payload_load)
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
-from .effects.structure import probes, step_candidates
+from .effects.structure import probes, session_clock, step_candidates
 from .identify import Calibration, effect_bases, identify, tracker_sigma_mm
 from .select import select_geometry
 from .io import Measurements
@@ -334,14 +334,21 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
     return tried[0][0], tried[0][1], alike
 
 
-PLAY_PASSES = 2
+PLAY_PASSES = 6
+SATURATES = 1.5
+"""A play with fitted softness must reach tanh(1.5) = 0.9 of its flanks somewhere, else it is a spring."""
+REFINE_ALPHA = 0.01
+"""A richer form replaces an accepted cause only on this stronger held-out evidence (it is more flexible)."""
+STEP_WINDOW = 8
+"""Poses either side of a found step among which its exact place is sought."""
 """Times the play's switch is classified again on the residual with the fitted play put back."""
 SOFT_PLAY = (0.002, 0.07, 0.15, 0.3, 0.5)
-"""Transitions (share of the largest load) of a sharper or a soft gear play, tried when a play or a spring
-is found (the default is 0.02)."""
+"""Transitions (share of the largest model load) of a sharper or a soft gear play, tried when a play on the
+model's statics is found (the default is 0.02); a play on the identified load has its softness fitted."""
 
 
-def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dict[int, Backlash]) -> list[Effect]:
+def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dict[int, list[Backlash]]
+                 ) -> list[Effect]:
     """Richer forms of an accepted cause, kept only if held-out poses prefer them: a stiffening spring, the
     load identified from the data instead of the mass data, a play whose switch follows the identified load,
     a soft play (the joint moves through its play elastically near zero load)."""
@@ -357,10 +364,8 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
         share = Backlash.TRANSITION_SHARE
         if not e.load_coef:
             out += [dataclasses.replace(e, transition=e.transition / share * t) for t in SOFT_PLAY]
-        else:
-            out += [dataclasses.replace(e, transition=t) for t in SOFT_PLAY]
-    if isinstance(e, (Backlash, JointCompliance, LoadCompliance)) and j in play_pool and e != play_pool[j]:
-        out += [play_pool[j]] + [dataclasses.replace(play_pool[j], transition=t) for t in SOFT_PLAY]
+    if isinstance(e, (Backlash, JointCompliance, LoadCompliance)):
+        out += [p for p in play_pool.get(j, []) if p != e]
     return out
 
 
@@ -374,12 +379,34 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
         except ValueError:
             continue
         p, drop = holdout_gain(trial, t)
-        if p < HOLDOUT_ALPHA and drop > 0 and (best is None or t.metrics()["holdout_rms_mm"] <
+        if p < REFINE_ALPHA and drop > 0 and (best is None or t.metrics()["holdout_rms_mm"] <
                                                best[1].metrics()["holdout_rms_mm"]):
             best = (alt, t)
     if best is None:
         return c, trial
     return Candidate(**{**c.__dict__, "effect": best[0], "label": best[0].label(model)}), best[1]
+
+
+def _refine_step(c, trial, chosen, model, meas, fit, x_ref):
+    """Place an accepted step exactly: every gap between consecutive poses in time order near the searched
+    one is tried (a fit each), the best by its residual is kept if held-out poses do not object."""
+    clock, _ = session_clock(meas)
+    order = np.sort(clock)
+    k = int(np.searchsorted(order, c.effect.at))
+    gaps = range(max(k - STEP_WINDOW, 1), min(k + STEP_WINDOW, len(order) - 1) + 1)
+    best = None
+    for i in gaps:
+        at = float(0.5 * (order[i - 1] + order[i])) if c.effect.source == "time" else float(i)
+        e = dataclasses.replace(c.effect, at=at)
+        rss = float(np.sum(fit(chosen + [e], x_ref, folds=0).solution.residual ** 2))
+        if best is None or rss < best[0]:
+            best = (rss, e)
+    if best is None or best[1] == c.effect:
+        return c, trial
+    t = fit(chosen + [best[1]], x_ref)
+    if t.metrics()["holdout_rms_mm"] > trial.metrics()["holdout_rms_mm"]:
+        return c, trial
+    return Candidate(**{**c.__dict__, "effect": best[1], "label": best[1].label(model)}), t
 
 
 def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, floor):
@@ -537,26 +564,36 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
         col = Jq[:, :, j]
         w = (col**2).sum(1)
         start = nominal[:, j] if nominal is not None else (col * R).sum(1) / np.maximum(w, 1e-300)
-        beta = np.linalg.lstsq(Z, start, rcond=None)[0]
-        partial, play = R, None
-        for _ in range(1 + PLAY_PASSES):
-            e = (col * partial).sum(1) / np.maximum(w, 1e-300)  # the residual as an offset of joint j, per pose
-            beta = _switch(Z, e, w / sigma**2, beta)
-            coef = np.zeros(F.shape[1])
-            coef[keep] = root_n * (Vt[:rank].T / s[:rank]) @ beta / scale[keep]
-            load = F @ coef
-            if not np.any(load > 0) or not np.any(load < 0):
-                break
-            play = Backlash((j,), transition=Backlash.TRANSITION_SHARE, search_dof=rank,
-                            load_coef=tuple(float(v) for v in coef / np.abs(load).max()))
-            try:  # fit it, then find the switch again on the residual with the play put back (partial residual)
-                fitted = fit(tuple(cal.effects) + (play,), x_ref, folds=0)
-            except ValueError:
-                break
-            step = 0.5 * fitted.effect_values[-1][0] * np.tanh(load / np.abs(load).max() / play.transition)
-            partial = meas.points - fitted.predict(meas.joints, meas) + col * step[:, None]
-        if play is not None:
-            out.append(play)
+        sharp = np.linalg.lstsq(Z, start, rcond=None)[0]
+        for soft in (False, True):  # a sharp play, then one whose softness is fitted
+            partial, play, beta = R, None, sharp
+            for _ in range(1 + PLAY_PASSES):
+                e = (col * partial).sum(1) / np.maximum(w, 1e-300)  # the residual as an offset of joint j, per pose
+                beta = _softness(Z, e, w / sigma**2, beta) if soft else _switch(Z, e, w / sigma**2, beta)
+                coef = np.zeros(F.shape[1])
+                coef[keep] = root_n * (Vt[:rank].T / s[:rank]) @ beta / scale[keep]
+                load = F @ coef
+                if not np.any(load > 0) or not np.any(load < 0):
+                    break
+                if soft and np.abs(load).max() < SATURATES:
+                    play = None  # it never reaches the flanks of its play: that is a spring, not a play
+                    break
+                if soft:
+                    play = Backlash((j,), transition=1.0, search_dof=rank + 1, fitted_softness=True,
+                                    load_coef=tuple(float(v) for v in coef))
+                else:
+                    play = Backlash((j,), transition=Backlash.TRANSITION_SHARE, search_dof=rank,
+                                    load_coef=tuple(float(v) for v in coef / np.abs(load).max()))
+                try:  # fit it, then find the switch again on the residual with the play put back (partial residual)
+                    fitted = fit(tuple(cal.effects) + (play,), x_ref, folds=0)
+                except ValueError:
+                    break
+                ctx = Context(model, ref, meas)
+                step = fitted.effect_values[-1][0] * play.basis(ctx).joint[:, j, 0]
+                partial = meas.points - fitted.predict(meas.joints, meas) + col * step[:, None]
+            if play is not None:
+                out.append(play)
+                sharp = beta if not soft else sharp
     return out
 
 
@@ -578,6 +615,34 @@ def _switch(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta0: np.ndarray)
         p = optimize.least_squares(fun, np.r_[b, beta], jac=jac, method="lm", max_nfev=50).x
         beta = p[1:] * np.sign(p[0]) / max(float(np.sqrt(np.mean((Z @ p[1:]) ** 2))), 1e-300)
     return beta
+
+
+def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """The play's load direction with its scale free: b/2 tanh(Z beta) fitted to the offsets e, so |beta|
+    says how soft the play is (started from the best of a few transitions)."""
+    sw = np.sqrt(weight / max(weight.mean(), 1e-300))
+
+    def amplitude(bz):
+        s0 = np.tanh(bz)
+        return 2.0 * float((sw**2 * s0 * e).sum() / max((sw**2 * s0 * s0).sum(), 1e-300))
+
+    def cost(bz):
+        return float(np.sum((sw * (e - 0.5 * amplitude(bz) * np.tanh(bz))) ** 2))
+
+    linear = np.linalg.lstsq(Z * sw[:, None], e * sw, rcond=None)[0]  # a soft play is linear near zero load
+    linear = linear / max(float(np.sqrt(np.mean((Z @ linear) ** 2))), 1e-300)
+    starts = [beta / t for t in (0.05, 0.15, 0.5, 1.5)] + [linear * a for a in (0.5, 1.0, 2.0, 4.0)]
+    start = min(starts, key=lambda bb: cost(Z @ bb))
+
+    def fun(p):
+        return sw * (e - 0.5 * p[0] * np.tanh(Z @ p[1:]))
+
+    def jac(p):
+        th = np.tanh(Z @ p[1:])
+        return -sw[:, None] * np.column_stack([0.5 * th, 0.5 * p[0] * (1.0 - th**2)[:, None] * Z])
+
+    p = optimize.least_squares(fun, np.r_[amplitude(Z @ start), start], jac=jac, method="lm", max_nfev=100).x
+    return p[1:] * np.sign(p[0])
 
 
 def _excess(cal: Calibration, floor: float) -> float:
@@ -670,7 +735,9 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                   and c.log_p <= thresholds[id(c.effect)]}
         plays = _identified_backlash(current, meas, sigma, x_ref, sorted(j for j in active if not any(
             isinstance(e, Backlash) and e.joints == (j,) for e in chosen)), fit)
-        play_pool = {b.joints[0]: b for b in plays}
+        play_pool: dict[int, list[Backlash]] = {}
+        for b in plays:
+            play_pool.setdefault(b.joints[0], []).append(b)
         if plays:
             pool += plays
             thresholds = _thresholds(pool, alpha)
@@ -700,6 +767,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 continue
             c, trial, alike = _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref)
             c, trial = _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref)
+            if isinstance(c.effect, SessionStep):
+                c, trial = _refine_step(c, trial, chosen, model, meas, fit, x_ref)
             findings.append(_finding(c, model, current, trial, floor, alike, meas))
             chosen.append(c.effect)
             current, accepted = trial, True

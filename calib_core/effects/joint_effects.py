@@ -78,13 +78,15 @@ class Backlash(Effect):
     transition: float = 0.0
     load_coef: tuple = ()
     search_dof: int = 0  # parameters spent finding the load from the residual (counted in the F-test)
+    fitted_softness: bool = False  # the identified load is in units of the transition (its softness fitted)
     TRANSITION_SHARE = 0.02  # of the largest load in the calibration data
 
     def parameter_names(self, model):
         return [f"{model.joint_names[self.joints[0]]}.backlash"]
 
     def label(self, model):
-        soft = f" soft {self.transition:.2g}" if self.load_coef and self.transition > self.TRANSITION_SHARE else ""
+        soft = " soft, fitted" if self.fitted_softness else (
+            f" soft {self.transition:.2g}" if self.load_coef and self.transition > self.TRANSITION_SHARE else "")
         return super().label(model) + (" identified load" if self.load_coef else "") + soft
 
     def parameter_units(self, model):

@@ -37,9 +37,7 @@ def _world(kind, size, seed, model=SPRAY):
 def _named(findings, kind, joints) -> dict | None:
     """The finding that names `kind` on exactly these joints, or lists it among its look-alikes."""
     for f in findings:
-        if f["kind"] != kind:
-            continue
-        if kind == "unexplained" or set(f["joints"]) == set(joints):
+        if f["kind"] == kind and (kind == "unexplained" or set(f["joints"]) == set(joints)):
             return f
         if any(a["kind"] == kind and set(a["joints"]) == set(joints) for a in f.get("indistinguishable_from", [])):
             return f
