@@ -337,6 +337,8 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
 PLAY_PASSES = 6
 SATURATES = 1.5
 """A play with fitted softness must reach tanh(1.5) = 0.9 of its flanks somewhere, else it is a spring."""
+STIFFENING = (0.3, 1.0, 3.0, 10.0)
+"""Stiffening ratios (cubic over linear stiffness at the largest load) tried for a found spring."""
 REFINE_ALPHA = 0.01
 """A richer form replaces an accepted cause only on this stronger held-out evidence (it is more flexible)."""
 STEP_WINDOW = 8
@@ -347,8 +349,8 @@ SOFT_PLAY = (0.002, 0.07, 0.15, 0.3, 0.5)
 model's statics is found (the default is 0.02); a play on the identified load has its softness fitted."""
 
 
-def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dict[int, list[Backlash]]
-                 ) -> list[Effect]:
+def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dict[int, list[Backlash]],
+                 loads_max: np.ndarray | None = None) -> list[Effect]:
     """Richer forms of an accepted cause, kept only if held-out poses prefer them: a stiffening spring, the
     load identified from the data instead of the mass data, a play whose switch follows the identified load,
     a soft play (the joint moves through its play elastically near zero load)."""
@@ -356,8 +358,9 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
         return []
     j = e.joints[0]
     out: list[Effect] = []
-    if isinstance(e, JointCompliance) and not e.cubic:
-        out.append(JointCompliance(e.joints, cubic=True))
+    if loads_max is not None and isinstance(e, (JointCompliance, Backlash)) and not getattr(e, "stiffening", 0):
+        # a soft play and a stiffening spring both deflect less and less as the load grows: try both
+        out += [JointCompliance(e.joints, stiffening=r, load_scale=float(loads_max[j])) for r in STIFFENING]
     if isinstance(e, JointCompliance) and j in load_pool:
         out.append(load_pool[j])
     if isinstance(e, Backlash):
@@ -371,20 +374,34 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
 
 def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     """Swap the accepted cause for a richer form of it when held-out poses say so: among the forms that are
-    significantly better than it (paired test), the best on held-out poses."""
-    best = None
-    for alt in _refinements(c.effect, load_pool, play_pool):
+    significantly better than it (paired test), the best on held-out poses; the other forms within 2 % of it
+    are look-alikes (a stiffening spring and a soft play both bend less and less as the load grows)."""
+    better = []
+    loads_max = None
+    if fit.model.has_mass:
+        from .statics import joint_loads
+
+        loads_max = np.abs(joint_loads(K.Chain(model, x_ref, fit.meas.joints), fit.meas.payload_kg())).max(0)
+    tried = []
+    for alt in _refinements(c.effect, load_pool, play_pool, loads_max):
         try:
             t = fit(chosen + [alt], x_ref)
         except ValueError:
             continue
+        tried.append((alt, t))
         p, drop = holdout_gain(trial, t)
-        if p < REFINE_ALPHA and drop > 0 and (best is None or t.metrics()["holdout_rms_mm"] <
-                                               best[1].metrics()["holdout_rms_mm"]):
-            best = (alt, t)
-    if best is None:
-        return c, trial
-    return Candidate(**{**c.__dict__, "effect": best[0], "label": best[0].label(model)}), best[1]
+        if p < REFINE_ALPHA and drop > 0:
+            better.append((alt, t))
+    best, t = min(better, key=lambda at: at[1].metrics()["holdout_rms_mm"]) if better else (c.effect, trial)
+    h = t.metrics()["holdout_rms_mm"]
+    alike = [{"kind": a.kind, "joints": [model.joint_names[j] for j in a.joints], "form": a.label(model),
+              "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
+             for a, ta in tried if a is not best and a.kind != best.kind
+             and ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h]
+    alike = list({(a["kind"], tuple(a["joints"])): a for a in alike}.values())  # one per kind and joints
+    if best is c.effect:
+        return c, trial, alike
+    return Candidate(**{**c.__dict__, "effect": best, "label": best.label(model)}), t, alike
 
 
 def _refine_step(c, trial, chosen, model, meas, fit, x_ref):
@@ -766,7 +783,9 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                                                f"do not confirm it ({hb:.3f} -> {ha:.3f} mm, paired p = {p_gain:.1e})"})
                 continue
             c, trial, alike = _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref)
-            c, trial = _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref)
+            c, trial, forms = _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref)
+            seen = {(a["kind"], tuple(a["joints"])) for a in alike}
+            alike += [f for f in forms if (f["kind"], tuple(f["joints"])) not in seen]
             if isinstance(c.effect, SessionStep):
                 c, trial = _refine_step(c, trial, chosen, model, meas, fit, x_ref)
             findings.append(_finding(c, model, current, trial, floor, alike, meas))

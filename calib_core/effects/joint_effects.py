@@ -17,53 +17,51 @@ def _load_unit(model: RobotModel, j: int) -> str:
     return "N" if model.prismatic[j] else "N*m"
 
 
+def hardening(u: np.ndarray, r: float) -> np.ndarray:
+    """The deflection g of a stiffening spring, g + r g^3 = u (all in units of the largest load): the real
+    root by Cardano's formula; g = u for a linear spring (r = 0)."""
+    if r <= 0:
+        return u
+    q = -u / r
+    disc = np.sqrt(q**2 / 4 + 1.0 / (27 * r**3))
+    return np.cbrt(-q / 2 + disc) + np.cbrt(-q / 2 - disc)
+
+
 @dataclass(frozen=True)
 class JointCompliance(Effect):
-    """dq_j = c_j * load_j (+ c3_j * load_j^3 for a stiffening spring, `cubic`): each joint (gear, motor,
-    structure) deflects with its gravity and payload load from the model's mass data; one joint or several."""
+    """dq_j = c_j * load_j: each joint (gear, motor, structure) deflects with its gravity and payload load from
+    the model's mass data; one joint or several. With `stiffening` r > 0 the spring hardens: the deflection
+    g solves g + r g^3 = load / load_scale (times load_scale), so it grows less and less with the load."""
 
     kind = "joint_compliance"
     needs = "mass"
-    cubic: bool = False
+    stiffening: float = 0.0
+    load_scale: float = 1.0  # N*m or N: the largest load in the calibration data
 
     def parameter_names(self, model):
-        out = []
-        for j in self.joints:
-            out.append(f"{model.joint_names[j]}.compliance")
-            if self.cubic:
-                out.append(f"{model.joint_names[j]}.compliance_cubic")
-        return out
+        return [f"{model.joint_names[j]}.compliance" for j in self.joints]
 
     def parameter_units(self, model):
-        out = []
-        for j in self.joints:
-            off, load = _offset_unit(model, j), _load_unit(model, j)
-            out.append(f"{off}/{load}")
-            if self.cubic:
-                out.append(f"{off}/{load}^3")
-        return out
+        return [f"{_offset_unit(model, j)}/{_load_unit(model, j)}" for j in self.joints]
 
     def basis(self, ctx: Context) -> Basis:
         N, n = ctx.meas.joints.shape
-        per = 2 if self.cubic else 1
-        b = np.zeros((N, n, per * len(self.joints)))
+        b = np.zeros((N, n, len(self.joints)))
         for i, j in enumerate(self.joints):
             load = ctx.loads[:, j]
-            b[:, j, per * i] = load
-            if self.cubic:
-                b[:, j, per * i + 1] = load**3
+            b[:, j, i] = hardening(load / self.load_scale, self.stiffening) * self.load_scale
         j = self.joints[0]
         return Basis(b, None, ctx.loads[:, j], f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
 
     def label(self, model):
-        return super().label(model) + (" stiffening" if self.cubic else "")
+        return super().label(model) + (f" stiffening {self.stiffening:g}" if self.stiffening else "")
 
     def explain(self, model):
         who = ", ".join(model.joint_names[j] for j in self.joints)
-        form = "a spring that stiffens with load" if self.cubic else "in proportion to"
-        if self.cubic:
-            return f"{who} deflect{'s' if len(self.joints) == 1 else ''} under gravity and payload load, as {form}"
-        return f"{who} deflect{'s' if len(self.joints) == 1 else ''} {form} {'its' if len(self.joints) == 1 else 'their'} gravity and payload load"
+        one = len(self.joints) == 1
+        if self.stiffening:
+            return f"{who} deflect{'s' if one else ''} under gravity and payload load, as a spring that stiffens with load"
+        return f"{who} deflect{'s' if one else ''} in proportion to {'its' if one else 'their'} gravity and payload load"
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ h3 { font-size: 1.05em; margin: 1.2em 0 .3em; }
 .card .v.cause { font-size: 1.05em; }
 .card .v small { font-size: .6em; font-weight: 400; color: var(--mute); }
 .explain { background: #f1f5fb; border-left: 4px solid var(--fin); padding: .6em .9em; }
+.explain.warn { background: #fdf3e7; border-left-color: #d9822b; }
 table { border-collapse: collapse; width: 100%; margin: .4em 0 .8em; font-size: .92em; }
 th, td { padding: .3em .55em; border-bottom: 1px solid var(--line); text-align: left; vertical-align: top; }
 td.n, th.n { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
@@ -158,6 +159,8 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
         w(f'<div class="card"><div class="k">cause{"s" if len(findings) > 1 else ""} found</div>'
           f'<div class="v cause">{_e(causes)}</div></div>')
     w("</div>")
+    for warning in answer.get("warnings") or []:
+        w(f'<p class="explain warn"><b>Caution.</b> {_e(warning)}</p>')
     if d.get("explanation"):
         w(f'<p class="explain">{_e(d["explanation"])}</p>')
     elif not d:
