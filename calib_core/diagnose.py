@@ -477,7 +477,9 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     e = c.effect
     names = set(e.parameter_names(model))
     params = [p for p in after.parameters() if "effect" in p and p["name"] in names]
-    shown = ", ".join(f"{p['name']} = {p['value']:.4g} +/- {p['std']:.2g} {p['unit']}" for p in params[:4])
+    shown = ", ".join(f"{p['name']} = {p['value']:.4g} +/- "
+                      f"{'(undetermined)' if p['std'] is None else format(p['std'], '.2g')} {p['unit']}"
+                      for p in params[:4])
     when = _when(e, meas) if meas is not None else ""
     p_gain, _ = holdout_gain(before, after)
     mb = float(np.sqrt(max(holdout_ms(before) - floor**2, 0.0)))
