@@ -22,6 +22,7 @@ Four calibrations, each fitted on the calibration part only and scored on the te
 Wins / losses: ours against the network, per split, on RMS and on max separately (a tie is within 1 um).
 
 Run: .venv/bin/python -m benchmarks.bench_nn_baseline [--splits 5] [--workers 2] [--kinds ...] [--no-real]
+         [--real motoman_leica,iiwa7_payload]
 """
 from __future__ import annotations
 
@@ -236,12 +237,13 @@ def main():
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--kinds", nargs="*", default=list(TWIN_KINDS), help="world kinds (empty: no simulated data)")
     ap.add_argument("--no-real", action="store_true", help="skip the real datasets")
+    ap.add_argument("--real", default="motoman_leica,iiwa7_payload", help="which real datasets")
     args = ap.parse_args()
     t = time.perf_counter()
     data = []
     if not args.no_real:
         if datasets.available():
-            data += ["motoman_leica", "iiwa7_payload"]
+            data += [d for d in args.real.split(",") if d]
         else:
             print("(real datasets not found under ../shared: skipped)")
     data += [f"world:{k}" for k in args.kinds]
