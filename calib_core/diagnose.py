@@ -338,7 +338,7 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
 PLAY_PASSES = 6
 SATURATES = 1.5
 """A play with fitted softness must reach tanh(1.5) = 0.9 of its flanks somewhere, else it is a spring."""
-STIFFENING = (0.3, 1.0, 3.0, 10.0)
+STIFFENING = (0.5, 1.5, 4.0, 12.0, 30.0)
 """Stiffening ratios (cubic over linear stiffness at the largest load) tried for a found spring."""
 REFINE_ALPHA = 0.01
 """A richer form replaces an accepted cause only on this stronger held-out evidence (it is more flexible)."""
@@ -375,8 +375,9 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
 
 def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     """Swap the accepted cause for a richer form of it when held-out poses say so: among the forms that are
-    significantly better than it (paired test), the best on held-out poses; the other forms within 2 % of it
-    are look-alikes (a stiffening spring and a soft play both bend less and less as the load grows)."""
+    significantly better than it (paired test), the best on held-out poses; the other forms within 2 % of it,
+    or not significantly worse, are look-alikes (a stiffening spring and a soft play both bend less and less
+    as the load grows)."""
     better = []
     loads_max = None
     if fit.model.has_mass:
@@ -398,7 +399,7 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     alike = [{"kind": a.kind, "joints": [model.joint_names[j] for j in a.joints], "form": a.label(model),
               "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
              for a, ta in tried if a is not best and a.kind != best.kind
-             and ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h]
+             and (ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h or holdout_gain(ta, t)[0] > 0.05)]
     alike = list({(a["kind"], tuple(a["joints"])): a for a in alike}.values())  # one per kind and joints
     if best is c.effect:
         return c, trial, alike
