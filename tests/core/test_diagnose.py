@@ -17,7 +17,7 @@ OFF_VOCABULARY = [k for k in KINDS if EXPECTED[k] == "unexplained"]
 """World kinds no named cause has the shape of (base tilt, re-homing step, cable force)."""
 SIZES = (3.0, 8.0)
 """Drawn log-uniformly: the unabsorbable part of the hidden cause is this many times the noise RMS.  The
-benchmark (benchmarks/world_detection.py) measures the small sizes; a test must pass on every draw."""
+benchmark (benchmarks/detection.py) measures the small sizes; a test must pass on every draw."""
 TRUTH_LIMIT = 0.6
 """The extended model's error against the world's noise-free truth on fresh poses, times the noise RMS."""
 PLAY_TRUTH_LIMIT = 2.0
@@ -32,7 +32,7 @@ def _size(seed: int, lo: float = SIZES[0], hi: float = SIZES[1]) -> float:
 PLAYS = ("hard_backlash", "soft_backlash")
 MIN_SWITCHED = 0.1
 """A play shows only on poses whose load has the minority sign; on a joint whose load changes sign on a
-handful of the 150 poses it cannot be told from as many outliers (benchmarks/world_detection.py counts those
+handful of the 150 poses it cannot be told from as many outliers (benchmarks/detection.py counts those
 draws). The tests draw plays where at least this share of the poses sits on each side."""
 
 
@@ -123,7 +123,7 @@ def test_two_causes_together_are_both_found(seed):
     world = World(SPRAY, seed)
     # one load-driven cause and one of another family: two load-driven causes on neighbouring joints (the
     # spring of J4 and the bending of the short link after it) can swap places on 150 poses; their pair
-    # rate is measured in benchmarks/world_detection.py instead
+    # rate is measured in benchmarks/detection.py instead
     kinds = [str(rng.choice(["joint_spring", "cantilever"])),
              str(rng.choice(["gear_error", "rail_straightness", "encoder_scale"]))]
     first = hide(world, kinds[0], 5.0, rng)

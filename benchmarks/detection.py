@@ -1,7 +1,7 @@
 """Blind detection on the independent world (calib_world): does the diagnosis name physics it never saw?
 
-Unlike benchmarks/detection.py (the self-referential twin, whose hidden effects are the diagnosis's own
-dictionary entries), every cause here is simulated by calib_world from the mechanics (springs, gear play,
+Unlike the first release's benchmark of this name (a self-referential twin, whose hidden effects were the
+diagnosis's own dictionary entries), every cause here is simulated by calib_world from the mechanics (springs, gear play,
 cantilevers, a crooked rail, a warming workshop, a tilting base, a re-homing step, a dragging cable) and
 sized so that the part NO geometric parameter can absorb is `size` x the noise RMS.  The diagnosis is the
 judge and may be imported here; the world never imports it.
@@ -28,11 +28,11 @@ Flags: right (a finding of the expected kind on exactly the hidden joints, or li
 No-effect worlds: null_world(model, seed, outliers=2) (wrong masses, 2.5x repeatability, 2 bad readings):
 any finding is false; the calibration's named outliers are compared with the world's.
 
-Run:    .venv/bin/python -m benchmarks.world_detection [--draws 5] [--null 100] [--robots spray7,arm6]
-            [--sizes 0.5,1,2,4] [--kinds ...] [--workers 2] [--json /tmp/world_detection.json]
-Quick:  .venv/bin/python -m benchmarks.world_detection --draws 1 --sizes 2 --null 5
+Run:    .venv/bin/python -m benchmarks.detection [--draws 5] [--null 100] [--robots spray7,arm6]
+            [--sizes 0.5,1,2,4] [--kinds ...] [--workers 2] [--json /tmp/detection.json]
+Quick:  .venv/bin/python -m benchmarks.detection --draws 1 --sizes 2 --null 5
 Re-tabulate without running (slices merge):
-        .venv/bin/python -m benchmarks.world_detection --from-json a.json,b.json [--estimate]
+        .venv/bin/python -m benchmarks.detection --from-json a.json,b.json [--estimate]
 """
 from __future__ import annotations
 
@@ -435,7 +435,7 @@ def main(argv=None):
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--workers", type=int, default=MAX_WORKERS)
     ap.add_argument("--seed-base", type=int, default=SEED_BASE)
-    ap.add_argument("--json", default="/tmp/world_detection.json", help="where to dump every per-draw record")
+    ap.add_argument("--json", default="/tmp/detection.json", help="where to dump every per-draw record")
     ap.add_argument("--from-json", default=None, help="only tabulate the records of previous run(s): path[,path...]")
     ap.add_argument("--estimate", action="store_true",
                     help="print the wall-time estimate of a full run (every robot and kind, --draws 5 --null 100) "
