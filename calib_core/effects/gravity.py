@@ -23,6 +23,9 @@ from .base import Basis, Context, Effect
 MAX_LOAD_TERMS = 6
 """At most this many regressor combinations per joint: a joint's gravity torque over a workspace is a few
 harmonics of the distal joints; more terms only fit noise."""
+LOAD_PRIOR_RAD = 0.005
+"""Ridge prior (rad) on each identified load combination's RMS offset: a weakly excited combination cannot
+grow without bound and blow up away from the calibration poses (a payload compliance keeps it too)."""
 MAX_LATERAL_TERMS = 3
 """The same for each bending moment across a joint (two per joint)."""
 
@@ -77,6 +80,7 @@ class LoadCompliance(Effect):
     needs = "gravity"
     load_mix: tuple = ()
     payload: bool = False
+    prior_std: float = LOAD_PRIOR_RAD
 
     def _sizes(self) -> list[int]:
         return [len(m[0]) if m else 0 for m in self.load_mix]
@@ -148,7 +152,7 @@ def load_mix_for(chain, j: int, absorb: np.ndarray | None = None, Jq: np.ndarray
     A = A0 if absorb is None else A0 - absorb @ (absorb.T @ A0)
     ref = np.linalg.svd(A0, compute_uv=False)[0]
     _, s, Vt = np.linalg.svd(A, full_matrices=False)
-    r = int(min(max_terms, (s > 1e-2 * ref).sum()))
+    r = int(min(max_terms, (s > 0.1 * ref).sum()))  # well excited and not absorbed by the geometry
     if r == 0:
         return None
     M = np.zeros((Y.shape[1], r))
@@ -166,6 +170,7 @@ class LateralCompliance(Effect):
     kind = "link_deflection"
     needs = "gravity"
     load_mix: tuple = ()  # per joint: (mix_x, mix_y)
+    prior_std: float = LOAD_PRIOR_RAD
 
     def parameter_names(self, model):
         return [f"{model.joint_names[j]}.tilt_{a}_{i + 1}" for j, mixes in zip(self.joints, self.load_mix)
