@@ -18,8 +18,10 @@ OFF_VOCABULARY = [k for k in KINDS if EXPECTED[k] == "unexplained"]
 SIZES = (3.0, 8.0)
 """Drawn log-uniformly: the unabsorbable part of the hidden cause is this many times the noise RMS.  The
 benchmark (benchmarks/detection.py) measures the small sizes; a test must pass on every draw."""
-TRUTH_LIMIT = 0.6
-"""The extended model's error against the world's noise-free truth on fresh poses, times the noise RMS."""
+TRUTH_LIMIT = 0.8
+"""The extended model's error against the world's noise-free truth on fresh poses, times the noise RMS. The
+benchmark measures a median of 0.28-0.30x and a 90th percentile of 0.52-0.62x (docs/RESULTS.md, 3.2); a
+single draw must stay below this, where the geometry alone leaves 3-8x."""
 PLAY_TRUTH_LIMIT = 2.0
 """For a gear play the identified switch misplaces a few poses, and each costs the full play: the benchmark
 measures 0.3-2.7x the noise at 1-4x (docs/RESULTS.md, section 3); the geometry alone leaves 3-8x here."""
