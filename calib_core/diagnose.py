@@ -29,6 +29,7 @@ from .effects.structure import probes, session_clock, step_candidates
 from .identify import Calibration, effect_bases, identify, tracker_sigma_mm
 from .select import select_geometry
 from .solve import OUTLIER_U
+from .statics import joint_loads
 from .io import Measurements
 from .model import RobotModel
 
@@ -381,8 +382,6 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     better = []
     loads_max = None
     if fit.model.has_mass:
-        from .statics import joint_loads
-
         loads_max = np.abs(joint_loads(K.Chain(model, x_ref, fit.meas.joints), fit.meas.payload_kg())).max(0)
     tried = []
     for alt in _refinements(c.effect, load_pool, play_pool, loads_max):
@@ -566,10 +565,9 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
     R = r.reshape(-1, 3) * sigma[:, None]
     Jq = chain.joint_jacobian()
     ref = K.Chain(model, x_ref, meas.joints, cal.R0)
+    ref_ctx = Context(model, ref, meas)
     nominal = None
     if model.has_mass:
-        from .statics import joint_loads
-
         nominal = joint_loads(ref, meas.payload_kg())
     out = []
     for j in joints:
@@ -609,8 +607,7 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
                     fitted = fit(tuple(cal.effects) + (play,), x_ref, folds=0)
                 except ValueError:
                     break
-                ctx = Context(model, ref, meas)
-                step = fitted.effect_values[-1][0] * play.basis(ctx).joint[:, j, 0]
+                step = fitted.effect_values[-1][0] * play.basis(ref_ctx).joint[:, j, 0]
                 partial = meas.points - fitted.predict(meas.joints, meas) + col * step[:, None]
             if play is not None:
                 out.append(play)
@@ -672,8 +669,6 @@ def _play_not_outliers(first: Calibration, meas: Measurements) -> bool:
     model, out = first.model, first.solution.outliers
     if not model.has_mass or len(out) < 2:
         return False
-    from .statics import joint_loads
-
     loads = joint_loads(K.Chain(model, first.x, meas.joints, first.R0), meas.payload_kg())
     for j in range(model.n_joints):
         sign = np.sign(loads[:, j])
