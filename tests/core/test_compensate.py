@@ -32,7 +32,8 @@ def _calibrated(seed, model=SPRAY, payload_kg=None, joint=None):
                               8.0 * world.noise_rms_mm(q), q, cols)
         world.hide(cause)
     d = diagnose(model, world.measure(q, payload_kg=payload_kg))
-    assert "joint_compliance" in [f["kind"] for f in d.findings], (seed, cause, d.explanation)
+    # a spring on a pitch joint and a bending forearm look alike; compensation needs a load-driven cause, either
+    assert {"joint_compliance", "link_deflection"} & {f["kind"] for f in d.findings}, (seed, cause, d.explanation)
     return world, d, rng
 
 
