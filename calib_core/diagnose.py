@@ -849,6 +849,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                          f"noise) is probably worse than assumed. Measure some poses twice to know the floor.")
             note = f"estimated from the structure-free held-out residual (assumed floor was {floor:.3f} mm)"
             floor, basis = new_floor, "residual"
+    if _excess(current, floor) < alpha:  # structure left beyond the floor: predictions carry it in their std
+        current.unmodelled_mm = float(np.sqrt(max(holdout_ms(current) - floor**2, 0.0) / 3.0))
     nominal = next((c for label, c in selection.calibrations.items() if label == "registration"), None) \
         or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
     d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,

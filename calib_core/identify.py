@@ -115,6 +115,7 @@ class Calibration:
     sigma0_measurement: float | None = None  # sigma0 of the fit weighted by the measurement noise alone
     prior_scale: float = 1.0  # multiplier of the default prior precision of the joint parameters
     x_basis: np.ndarray | None = None  # the geometry the effect bases were evaluated on
+    unmodelled_mm: float = 0.0  # per-axis std of held-out structure no cause in the model explains (diagnose sets it)
 
     @property
     def warnings(self) -> list[str]:
@@ -143,7 +144,8 @@ class Calibration:
             "parameters": self.parameters(),
             "metrics": self.metrics(),
             "identifiability": self.identifiability.to_dict(),
-            "uncertainty": {"conditional_on_model": True, "note": UNCERTAINTY_NOTE},
+            "uncertainty": {"conditional_on_model": True, "note": UNCERTAINTY_NOTE,
+                            "unmodelled_mm_per_axis": self.unmodelled_mm},
             "warnings": self.warnings,
             "base_pose": {"position_mm": pb.tolist(), "rotation_matrix": Rb.tolist()},
             "calibrated_model": self.model.to_dict(self.x[: 5 * n].reshape(n, 5), self.x[5 * n + 6:]),

@@ -7,8 +7,10 @@ the effect bases evaluated on the calibrated geometry (as CalibratedRobot.predic
 cov(p_i) = G_i cov(x[free], theta) G_i^T per pose, (3, 3) mm^2.
 
 Like the parameter std, this is conditional on the identified model being the right one: it says how much the
-parameters' estimation error moves the prediction, not what a cause the model lacks adds (see
-identify.UNCERTAINTY_NOTE). Directions the data and the prior leave undetermined carry no variance in
+parameters' estimation error moves the prediction (see identify.UNCERTAINTY_NOTE). When the diagnosis leaves
+held-out structure significantly above the noise floor that no cause in the model explains, that de-noised model
+error (`Calibration.unmodelled_mm`, per axis) is added in quadrature: a prediction cannot be surer than the part
+of the robot the model does not describe. Directions the data and the prior leave undetermined carry no variance in
 `solution.cov` (see solve.py): a prediction along them is not covered.
 """
 from __future__ import annotations
@@ -36,11 +38,12 @@ def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None =
 
 
 def prediction_cov(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
-    """Covariance (N, 3, 3) mm^2 of the predicted point at each pose from the parameters' covariance."""
+    """Covariance (N, 3, 3) mm^2 of the predicted point at each pose: the parameters' covariance propagated, plus
+    the unmodelled part the diagnosis measured."""
     G = prediction_jacobian(cal, joints, columns)
     C = cal.solution.cov
     out = np.einsum("nip,pq,njq->nij", G, C, G)
-    return 0.5 * (out + np.swapaxes(out, 1, 2))
+    return 0.5 * (out + np.swapaxes(out, 1, 2)) + cal.unmodelled_mm**2 * np.eye(3)
 
 
 def prediction_std_mm(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
