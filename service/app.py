@@ -1,21 +1,28 @@
-"""create_app(): routers, problem+json handlers, the body-size limit and the embedded dispatcher."""
+"""create_app(): routers, problem+json handlers, the HTTP edge (token, body-size limit, HEAD, 500s, database
+faults as 503), offline docs, /health and the embedded dispatcher."""
 from __future__ import annotations
 
+import logging
 from contextlib import asynccontextmanager
+from pathlib import Path
 
-from fastapi import Depends, FastAPI
-from pydantic import BaseModel
+from fastapi import FastAPI, Request
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
+from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel, Field
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session
+from sqlalchemy.exc import InterfaceError, OperationalError, SQLAlchemyError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 
 from . import problems
 from .calibrations.router import router as calibrations_router
 from .config import Settings
-from .db import Database
-from .deps import get_read_session
+from .db import Database, DatabaseUnavailable
+from .deps import TokenAuthMiddleware, check_token_setting
 from .jobs.models import Job
 from .jobs.router import router as jobs_router
-from .limits import BodyLimitMiddleware
+from .limits import BodyLimitMiddleware, HeadMiddleware, InternalErrorMiddleware
 from .measurements.router import router as measurements_router
 from .robots.router import router as robots_router
 
@@ -25,20 +32,36 @@ Flow: `POST /robots` (model) → `POST /robots/{id}/measurements` (CSV) → `POS
 `GET /calibrations/{id}` → `POST /calibrations/{id}/predict`.
 
 Every error is an RFC 9457 `application/problem+json` document; input problems are listed in `errors`.
-Writing calls need `Authorization: Bearer <token>` when the server sets `CALIB_API_TOKEN`."""
+When the server sets `CALIB_API_TOKEN`, every call but `GET /health` (reads, reports, these docs included) needs
+`Authorization: Bearer <token>` (or HTTP Basic with the token as password, for a browser).
+A database that is down, read-only or gone answers `503` with `Retry-After`; `GET /health` says `unavailable`.
+`GET /robots` is paged (`limit`, `offset`; `X-Total-Count` and `Link: rel="next"` headers)."""
+
+log = logging.getLogger("service")
+RETRY_AFTER_S = 5
+DOCS_ASSETS = "/docs-assets"
+
+
+def docs_assets_dir() -> Path:
+    """Swagger UI and ReDoc (JS, CSS, favicon) as shipped by the fastapi-offline package: no CDN needed."""
+    import fastapi_offline
+
+    return Path(fastapi_offline.__file__).resolve().parent / "static"
 
 
 class Health(BaseModel):
     model_config = {"json_schema_extra": {"example": {"status": "ok", "database": "sqlite",
                                                       "jobs": {"queued": 0, "running": 1}, "dispatcher": True}}}
-    status: str
+    status: str = Field(description='"ok", or "unavailable" (answered with 503) when the database cannot be used')
     database: str
-    jobs: dict[str, int]
+    jobs: dict[str, int] = Field(description="queued and running jobs (empty when the database is unreachable)")
     dispatcher: bool
+    detail: str | None = Field(None, description="what is wrong, when the status is not ok")
 
 
 def create_app(settings: Settings | None = None, *, dispatcher: bool | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
+    check_token_setting(settings)  # CALIB_API_TOKEN set but empty: refuse to start (deps.py)
     run_dispatcher = settings.embedded_workers if dispatcher is None else dispatcher
 
     @asynccontextmanager
@@ -48,6 +71,12 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
             from .queue.worker import Dispatcher
             d = Dispatcher(app.state.db, settings)
             d.start()
+            if settings.warm_pool:  # serve once the job processes are warm: the first job is as fast as any
+                import asyncio
+
+                if not await asyncio.to_thread(d.wait_ready, settings.warmup_timeout_s):
+                    log.warning("the job processes were not warm after %.0f s; serving anyway",
+                                settings.warmup_timeout_s)
         app.state.dispatcher = d
         try:
             yield
@@ -56,21 +85,105 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
                 d.stop()
             app.state.db.dispose()
 
-    app = FastAPI(title="calib", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    app = FastAPI(title="calib", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None)  # served below from local assets
     app.state.settings = settings
     app.state.db = Database(settings.database_url)
     app.state.dispatcher = None
     problems.install(app)
+    _document_health(app)
+
+    async def database_unavailable(request: Request, exc: Exception):
+        text = str(getattr(exc, "orig", None) or exc).lower()
+        read_only = "readonly" in text or "read-only" in text or app.state.db.read_only
+        log.warning("database unavailable on %s %s: %s", request.method, request.url.path,
+                    str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        detail = ("the database is read-only: nothing can be stored now; try again later" if read_only else
+                  "the database is unavailable (nothing was read or stored); try again later")
+        return problems.problem_response(request, 503, detail, kind="database-unavailable",
+                                         headers={"Retry-After": str(RETRY_AFTER_S)})
+
+    for exc_class in (OperationalError, InterfaceError, PoolTimeoutError):
+        app.add_exception_handler(exc_class, database_unavailable)
+    # the edge, innermost first (each add wraps the previous): token, 500s, body limit, HEAD
+    app.add_middleware(TokenAuthMiddleware, token=settings.api_token, open_paths=("/health",))
+    app.add_middleware(InternalErrorMiddleware, handler=app.exception_handlers[Exception])
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_upload_bytes)
+    app.add_middleware(HeadMiddleware)
     for r in (robots_router, measurements_router, jobs_router, calibrations_router):
         app.include_router(r)
+    _install_docs(app)
 
-    @app.get("/health", response_model=Health, tags=["health"], summary="Liveness and queue depth")
-    def health(s: Session = Depends(get_read_session, scope="function")) -> Health:
-        rows = s.execute(select(Job.status, func.count()).where(Job.status.in_(["queued", "running"]))
-                         .group_by(Job.status)).all()
-        jobs = {"queued": 0, "running": 0} | {k: int(v) for k, v in rows}
-        return Health(status="ok", database=s.get_bind().dialect.name, jobs=jobs,
-                      dispatcher=app.state.dispatcher is not None)
+    @app.get("/health", response_model=Health, tags=["health"], summary="Liveness, database and queue depth",
+             responses={503: {"description": "the database is unreachable, gone or read-only"}})
+    def health():
+        """`ok`, or `unavailable` with 503 and `Retry-After`: the database does not answer, or (SQLite) its file
+        is no longer where it was opened or cannot be written. Never needs the API token."""
+        db: Database = app.state.db
+        trouble = db.problems()
+        jobs: dict[str, int] = {}
+        try:
+            with db.read_session() as s:
+                rows = s.execute(select(Job.status, func.count()).where(Job.status.in_(["queued", "running"]))
+                                 .group_by(Job.status)).all()
+            jobs = {"queued": 0, "running": 0} | {k: int(v) for k, v in rows}
+        except SQLAlchemyError as exc:
+            reason = exc.reason if isinstance(exc, DatabaseUnavailable) else "the database does not answer"
+            if reason not in trouble:
+                trouble.append(reason)
+            log.warning("health: %s", str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        out = Health(status="unavailable" if trouble else "ok", database=db.engine.dialect.name, jobs=jobs,
+                     dispatcher=app.state.dispatcher is not None, detail="; ".join(trouble) or None)
+        if trouble:
+            return JSONResponse(out.model_dump(), status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)})
+        return out
 
     return app
+
+
+def _install_docs(app: FastAPI) -> None:
+    """/docs (Swagger UI) and /redoc from the package's own copies of their JS and CSS: they work offline."""
+    app.mount(DOCS_ASSETS, StaticFiles(directory=docs_assets_dir()), name="docs-assets")
+
+    def root(request: Request) -> str:
+        return request.scope.get("root_path", "").rstrip("/")
+
+    @app.get("/docs", include_in_schema=False)
+    def swagger_ui(request: Request) -> HTMLResponse:
+        r = root(request)
+        return get_swagger_ui_html(openapi_url=r + app.openapi_url, title="calib - API docs",
+                                   swagger_js_url=f"{r}{DOCS_ASSETS}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{r}{DOCS_ASSETS}/swagger-ui.css",
+                                   swagger_favicon_url=f"{r}{DOCS_ASSETS}/favicon.png",
+                                   oauth2_redirect_url=r + "/docs/oauth2-redirect",
+                                   swagger_ui_parameters={"validatorUrl": None})  # no call to an online validator
+
+    @app.get("/docs/oauth2-redirect", include_in_schema=False)
+    def swagger_ui_redirect() -> HTMLResponse:
+        return get_swagger_ui_oauth2_redirect_html()
+
+    @app.get("/redoc", include_in_schema=False)
+    def redoc(request: Request) -> HTMLResponse:
+        r = root(request)
+        return get_redoc_html(openapi_url=r + app.openapi_url, title="calib - API reference",
+                              redoc_js_url=f"{r}{DOCS_ASSETS}/redoc.standalone.js",
+                              redoc_favicon_url=f"{r}{DOCS_ASSETS}/favicon.png", with_google_fonts=False)
+
+
+def _document_health(app: FastAPI) -> None:
+    """/health answers 503 with its own JSON (status "unavailable"), not a problem document: say so in the
+    OpenAPI (problems.problem_openapi marks every 5xx as problem+json)."""
+    inner = app.openapi
+
+    def openapi() -> dict:
+        spec = inner()
+        op = spec.get("paths", {}).get("/health", {}).get("get")
+        if op and "503" in op.get("responses", {}):
+            op["responses"]["503"]["content"] = {"application/json": {
+                "schema": {"$ref": "#/components/schemas/Health"},
+                "example": {"status": "unavailable", "database": "sqlite", "jobs": {}, "dispatcher": True,
+                            "detail": "the SQLite database file /srv/calib/calib.db is gone (deleted, or its "
+                                      "directory was); nothing is read or written until it is restored"}}}
+        return spec
+
+    app.openapi = openapi

@@ -16,7 +16,8 @@ def _int(name: str, default: int) -> int:
 @dataclass(frozen=True)
 class Settings:
     database_url: str = "sqlite:///./calib.db"
-    api_token: str | None = None  # when set, writing calls need "Authorization: Bearer <token>"
+    api_token: str | None = None  # when set, every call but /health needs "Authorization: Bearer <token>"
+    api_token_set: bool = False  # CALIB_API_TOKEN is in the environment, even empty (then `calib serve` refuses)
     max_upload_bytes: int = 20 * 1024 * 1024  # any request body above this gets 413
     lease_seconds: float = 30.0  # a running job whose lease is not renewed for this long is re-queued
     heartbeat_seconds: float = 10.0
@@ -26,6 +27,11 @@ class Settings:
     worker_concurrency: int = 2  # processes in a worker's pool = jobs run at once
     embedded_workers: bool = True  # `calib serve` runs a dispatcher in-process
     test_job_delay_s: float = 0.0  # CALIB_TEST_JOB_DELAY_S: tests only, makes a job last longer (see queue/runner.py)
+    job_timeout_s: float = 600.0  # CALIB_JOB_TIMEOUT_S: a job running longer (summed over attempts) fails, its process killed
+    progress_seconds: float = 0.5  # CALIB_PROGRESS_SECONDS: a running job's progress row is written this often
+    warm_pool: bool = True  # CALIB_WARM_POOL: start the job processes (imports, one tiny calibration) before serving
+    warmup_timeout_s: float = 60.0  # CALIB_WARMUP_TIMEOUT_S: `calib serve` waits at most this long for a warm pool
+    test_poison: bool = False  # CALIB_TEST_POISON: tests only, CSV comment markers make a job crash or spin (runner.py)
     extra: dict = field(default_factory=dict)
 
     @classmethod
@@ -34,6 +40,7 @@ class Settings:
         return cls(
             database_url=os.environ.get("CALIB_DATABASE_URL", "sqlite:///./calib.db"),
             api_token=os.environ.get("CALIB_API_TOKEN") or None,
+            api_token_set="CALIB_API_TOKEN" in os.environ,
             max_upload_bytes=_int("CALIB_MAX_UPLOAD_BYTES", 20 * 1024 * 1024),
             lease_seconds=lease,
             heartbeat_seconds=_float("CALIB_HEARTBEAT_SECONDS", max(0.2, lease / 3)),
@@ -43,6 +50,11 @@ class Settings:
             worker_concurrency=_int("CALIB_WORKER_CONCURRENCY", 2),
             embedded_workers=os.environ.get("CALIB_EMBEDDED_WORKERS", "1").lower() not in ("0", "false", "no"),
             test_job_delay_s=_float("CALIB_TEST_JOB_DELAY_S", 0.0),
+            job_timeout_s=max(0.1, _float("CALIB_JOB_TIMEOUT_S", 600.0)),
+            progress_seconds=min(1.0, max(0.05, _float("CALIB_PROGRESS_SECONDS", 0.5))),
+            warm_pool=os.environ.get("CALIB_WARM_POOL", "1").lower() not in ("0", "false", "no"),
+            warmup_timeout_s=_float("CALIB_WARMUP_TIMEOUT_S", 60.0),
+            test_poison=os.environ.get("CALIB_TEST_POISON", "").lower() in ("1", "true", "yes"),
         )
 
     @property

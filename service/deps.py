@@ -1,18 +1,102 @@
-"""FastAPI dependencies: settings, a session per request (one transaction), bearer-token auth for writes."""
+"""FastAPI dependencies: settings, a session per request (one transaction), and the API token.
+
+Auth (CALIB_API_TOKEN): unset, nothing is asked (a laptop, a closed cell network). Set, every call but
+`GET /health` needs it (reads, reports, plots, jobs, the docs and /openapi.json too), enforced for the whole
+app by `TokenAuthMiddleware`; `require_writer` stays on the writing routes as a second check and to document
+the scheme in the OpenAPI. The token goes as `Authorization: Bearer <token>`, or as the password of HTTP
+Basic (any user name) so a browser can open /docs and the reports. Tokens are compared as UTF-8 bytes on both
+sides, in constant time: a non-ASCII token works when the client sends it UTF-8 encoded. Set but empty (or
+only white space, or with white space around it, which no HTTP header can carry) is a misconfiguration:
+`check_token_setting` refuses to start rather than silently run without auth.
+"""
 from __future__ import annotations
 
+import base64
+import binascii
+import hashlib
 import hmac
-from typing import Iterator
+from typing import Iterable, Iterator
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from .config import Settings
 from .db import Database
-from .problems import ProblemError
+from .problems import ProblemError, problem_response
 
-bearer = HTTPBearer(auto_error=False, description="Needed on writing calls when the server sets CALIB_API_TOKEN.")
+bearer = HTTPBearer(auto_error=False, description="Needed on every call but /health when the server sets "
+                    "CALIB_API_TOKEN (HTTP Basic with the token as password works too).")
+
+AUTH_CHALLENGE = 'Bearer realm="calib", Basic realm="calib", charset="UTF-8"'
+AUTH_DETAIL = ("this service needs 'Authorization: Bearer <token>' (CALIB_API_TOKEN) on every call but /health; "
+               "a browser may give the token as the password of HTTP Basic")
+
+
+class ConfigurationError(SystemExit):
+    """A setting the service refuses to start with; the message is printed and the process exits with 1."""
+
+
+def check_token_setting(settings: Settings) -> None:
+    """Refuse CALIB_API_TOKEN set to nothing (or white space): it would silently switch authentication off."""
+    token = settings.api_token
+    if (token is None and getattr(settings, "api_token_set", False)) or (token is not None and not token.strip()):
+        raise ConfigurationError("calib: CALIB_API_TOKEN is set but empty: refusing to start without the "
+                                 "authentication it asks for. Set it to a token, or unset it (unset, the API "
+                                 "asks for no token).")
+    if token is not None and token != token.strip():
+        raise ConfigurationError("calib: CALIB_API_TOKEN starts or ends with white space, which an HTTP header "
+                                 "cannot carry (no client could authenticate): remove it.")
+
+
+def _digest(b: bytes) -> bytes:
+    return hashlib.sha256(b).digest()
+
+
+def token_matches(authorization: bytes | None, token: str) -> bool:
+    """Whether a raw Authorization header value (bytes as sent) carries `token`: `Bearer <token>` or HTTP Basic
+    with the token as password. Compared as UTF-8 bytes, in constant time (digests: no length leak either)."""
+    if not authorization:
+        return False
+    scheme, _, rest = authorization.strip().partition(b" ")
+    rest, scheme = rest.strip(), scheme.lower()
+    if scheme == b"bearer":
+        given = rest
+    elif scheme == b"basic":
+        try:
+            given = base64.b64decode(rest, validate=True).partition(b":")[2]
+        except (binascii.Error, ValueError):
+            return False
+    else:
+        return False
+    return hmac.compare_digest(_digest(given), _digest(token.encode("utf-8")))
+
+
+def _authorization(headers: Iterable[tuple[bytes, bytes]]) -> bytes | None:
+    for k, v in headers:
+        if k == b"authorization":
+            return v
+    return None
+
+
+def unauthorized(request: Request | None):
+    return problem_response(request, 401, AUTH_DETAIL, kind="unauthorized",
+                            headers={"WWW-Authenticate": AUTH_CHALLENGE})
+
+
+class TokenAuthMiddleware:
+    """Every HTTP call needs the token, except the paths in `open_paths` (GET/HEAD /health)."""
+
+    def __init__(self, app: ASGIApp, token: str | None, open_paths: Iterable[str] = ("/health",)):
+        self.app, self.token, self.open_paths = app, token, frozenset(open_paths)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (self.token is None or scope["type"] != "http" or scope["path"] in self.open_paths
+                or token_matches(_authorization(scope.get("headers", ())), self.token)):
+            await self.app(scope, receive, send)
+            return
+        await unauthorized(Request(scope))(scope, receive, send)
 
 
 def get_settings(request: Request) -> Settings:
@@ -35,10 +119,10 @@ def get_read_session(db: Database = Depends(get_db)) -> Iterator[Session]:
         yield s
 
 
-def require_writer(settings: Settings = Depends(get_settings),
+def require_writer(request: Request, settings: Settings = Depends(get_settings),
                    cred: HTTPAuthorizationCredentials | None = Depends(bearer)) -> None:
+    """The writing routes' own check (TokenAuthMiddleware already gates every call); documents the scheme."""
     if settings.api_token is None:
         return
-    if cred is None or not hmac.compare_digest(cred.credentials.encode(), settings.api_token.encode()):
-        raise ProblemError(401, "this call needs 'Authorization: Bearer <token>' (CALIB_API_TOKEN)",
-                           kind="unauthorized", headers={"WWW-Authenticate": "Bearer"})
+    if not token_matches(_authorization(request.scope.get("headers", ())), settings.api_token):
+        raise ProblemError(401, AUTH_DETAIL, kind="unauthorized", headers={"WWW-Authenticate": AUTH_CHALLENGE})

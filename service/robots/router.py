@@ -2,7 +2,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Body, Depends, Query, Response
+from fastapi import APIRouter, Body, Depends, Query, Request, Response
 from sqlalchemy.orm import Session
 
 from ..deps import get_read_session, get_session, require_writer
@@ -25,10 +25,33 @@ def create_robot(response: Response, doc: dict[str, Any] = Body(..., openapi_exa
     return RobotOut.of(r)
 
 
-@router.get("/robots", response_model=list[RobotOut], summary="The stored robot models, oldest first")
-def list_robots(limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0, le=2**31),
+PAGE_HEADERS = {
+    "X-Total-Count": {"description": "how many robots are stored in all", "schema": {"type": "integer"}},
+    "Link": {"description": 'RFC 8288 links to the `rel="next"` and `rel="prev"` pages, when there are',
+             "schema": {"type": "string"}, "example": '</robots?limit=100&offset=100>; rel="next"'},
+}
+
+
+@router.get("/robots", response_model=list[RobotOut], summary="The stored robot models, oldest first, one page",
+            responses={200: {"description": "one page of the stored models", "headers": PAGE_HEADERS}})
+def list_robots(request: Request, response: Response,
+                limit: int = Query(100, ge=1, le=1000, description="page size (a page also ends once its models' "
+                                   "JSON passes 8 MiB; follow the `Link` header)"),
+                offset: int = Query(0, ge=0, le=2**31, description="how many robots to skip"),
                 s: Session = Depends(get_read_session, scope="function")) -> list[RobotOut]:
-    return [RobotOut.of(r) for r in service.list_robots(s, limit, offset)]
+    """The body is the list of models (contract section 3); the `X-Total-Count` header gives the total and
+    `Link` the next and previous pages."""
+    robots = service.list_robots(s, limit, offset)
+    total = service.count_robots(s)
+    response.headers["X-Total-Count"] = str(total)
+    links = []
+    if offset + len(robots) < total:
+        links.append(f'<{request.url.path}?limit={limit}&offset={offset + len(robots)}>; rel="next"')
+    if offset > 0:
+        links.append(f'<{request.url.path}?limit={limit}&offset={max(0, offset - limit)}>; rel="prev"')
+    if links:
+        response.headers["Link"] = ", ".join(links)
+    return [RobotOut.of(r) for r in robots]
 
 
 @router.get("/robots/{robot_id}", response_model=RobotOut, responses=problem_responses(404),

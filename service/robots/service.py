@@ -2,15 +2,19 @@
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+import logging
+import threading
+from collections import OrderedDict
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from calib_core.model import ModelError, RobotModel, parse_model
 
 from ..problems import ProblemError, get_or_404
 from .models import Robot
+
+log = logging.getLogger("service")
 
 
 def validate_model(doc) -> RobotModel:
@@ -23,9 +27,14 @@ def validate_model(doc) -> RobotModel:
         n = len(exc.errors)
         raise ProblemError(422, f"the robot model has {n} error{'s' * (n != 1)}; nothing was stored",
                            kind="invalid-model", errors=exc.errors) from None
-    except (TypeError, ValueError, KeyError, AttributeError, IndexError) as exc:  # malformed beyond what parse_model names
-        raise ProblemError(422, f"the robot model is malformed: {exc}", kind="invalid-model",
-                           errors=[{"field": "", "value": None, "message": str(exc)}]) from None
+    except (TypeError, ValueError, KeyError, AttributeError, IndexError, ArithmeticError, RecursionError):
+        # malformed beyond what parse_model names: say so in plain words, never Python's own message
+        log.info("unreadable robot model", exc_info=True)
+        raise ProblemError(422, "the robot model cannot be read: a value has the wrong kind (a list where a "
+                           "number or a text is expected, or the like); compare it with the contract, section 1",
+                           kind="invalid-model", errors=[{"field": "", "value": None, "message":
+                                                          "a value has the wrong kind; see the contract, section 1"}]
+                           ) from None
 
 
 def create_robot(s: Session, doc: dict) -> Robot:
@@ -40,15 +49,80 @@ def get_robot(s: Session, robot_id: str) -> Robot:
     return get_or_404(s, Robot, robot_id, "robot")
 
 
-def list_robots(s: Session, limit: int, offset: int) -> list[Robot]:
-    return list(s.scalars(select(Robot).order_by(Robot.created_at, Robot.id).limit(limit).offset(offset)))
+PAGE_MAX_BYTES = 8 * 1024 * 1024
+"""A page of `GET /robots` stops early (with at least one model) once its models' JSON passes this size."""
 
 
-@lru_cache(maxsize=256)
-def _parsed(text: str) -> RobotModel:
-    return parse_model(json.loads(text))
+def list_robots(s: Session, limit: int, offset: int, max_bytes: int = PAGE_MAX_BYTES) -> list[Robot]:
+    """At most `limit` robots from `offset`, oldest first, and fewer once their model JSON passes `max_bytes`."""
+    out, size = [], 0
+    result = s.scalars(select(Robot).order_by(Robot.created_at, Robot.id).limit(limit).offset(offset)
+                       .execution_options(yield_per=16))
+    try:
+        for r in result:
+            size += len(json.dumps(r.model_json))
+            if out and size > max_bytes:
+                break
+            out.append(r)
+    finally:
+        result.close()
+    return out
+
+
+def count_robots(s: Session) -> int:
+    return int(s.scalar(select(func.count()).select_from(Robot)))
+
+
+class ModelCache:
+    """Parsed models by robot id (stored models never change), least recently used dropped first, bounded by
+    the size of the models' JSON text rather than by their number: a few huge models cannot fill the memory."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self.bytes = 0
+        self._items: OrderedDict[str, tuple[RobotModel, int]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def get(self, key: str) -> RobotModel | None:
+        with self._lock:
+            hit = self._items.get(key)
+            if hit is None:
+                return None
+            self._items.move_to_end(key)
+            return hit[0]
+
+    def put(self, key: str, model: RobotModel, nbytes: int) -> None:
+        with self._lock:
+            old = self._items.pop(key, None)
+            if old is not None:
+                self.bytes -= old[1]
+            if nbytes > self.max_bytes:
+                return  # larger than the whole cache: parsed on every use
+            self._items[key] = (model, nbytes)
+            self.bytes += nbytes
+            while self.bytes > self.max_bytes:
+                _, (_, n) = self._items.popitem(last=False)
+                self.bytes -= n
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self.bytes = 0
+
+
+MODEL_CACHE_BYTES = 32 * 1024 * 1024
+_cache = ModelCache(MODEL_CACHE_BYTES)
 
 
 def model_of(r: Robot) -> RobotModel:
-    """The parsed calib_core model of a stored robot (cached: models are immutable once stored)."""
-    return _parsed(json.dumps(r.model_json, sort_keys=True))
+    """The parsed calib_core model of a stored robot (cached by id: models are immutable once stored)."""
+    key = str(r.id)
+    model = _cache.get(key)
+    if model is None:
+        text = json.dumps(r.model_json, sort_keys=True)
+        model = parse_model(json.loads(text))
+        _cache.put(key, model, len(text))
+    return model
