@@ -8,12 +8,14 @@ from __future__ import annotations
 import csv
 import io as _io
 import math
+import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 
 import numpy as np
 
-from .model import LENGTH_TO_MM, RobotModel
+from .model import (ANGLE_TO_RAD, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM, MAX_REVOLUTE_DEG, SIGMA_RANGE_MM,
+                    TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC, RobotModel)
 
 OPTIONAL = ("point", "timestamp", "temperature", "payload", "sigma")
 MAX_LISTED_ERRORS = 1000
@@ -62,8 +64,11 @@ class Measurements:
 def _decode(data: bytes | str) -> str:
     if isinstance(data, str):
         text = data
+        if "\x00" in text:
+            raise MeasurementError([{"row": None, "column": None, "value": None,
+                                     "message": "the file holds NUL characters: it is binary, not CSV text"}])
     else:
-        if b"\x00" in data[:65536]:
+        if b"\x00" in data:
             raise MeasurementError([{"row": None, "column": None, "value": None,
                                      "message": "the file is binary, not CSV text"}])
         try:
@@ -81,19 +86,93 @@ def _parse_time(value: str) -> float:
     return t.timestamp()
 
 
+NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+"""A plain decimal number in ASCII: no '1_000', no Unicode digits, no hex.  Unambiguous (linear time on any
+input: no two parts can match the same digits)."""
+NOT_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+MAX_COLUMNS = 1000
+"""A header with more columns than this is refused at once (a robot has a handful of joints)."""
+MAX_FIELD_CHARS = 131072
+"""csv's own field limit; a longer field is an error naming its row."""
+
+
+def parse_number(raw: str) -> tuple[float | None, str | None]:
+    """(value, None) for a plain finite decimal number, else (None, why in plain words)."""
+    if NOT_FINITE.fullmatch(raw):
+        return None, "must be finite (no NaN or inf)"
+    if not NUMBER.fullmatch(raw):
+        if len(raw) <= 64 and not raw.isascii() and all(c.isdigit() or c in "+-.eE_" for c in raw):
+            return None, "not a number: write digits 0-9 only"
+        if len(raw) <= 64 and "_" in raw:
+            return None, "not a number: write it without '_' separators"
+        return None, "not a number"
+    v = float(raw)
+    if not math.isfinite(v):
+        return None, "must be finite (the number is too large for a double)"
+    return v, None
+
+
+def _split(line: str) -> list[str]:
+    """One CSV line into fields; raises csv.Error for a field over MAX_FIELD_CHARS or bad quoting."""
+    if len(line) > MAX_FIELD_CHARS:  # csv.Error only after it buffered the field: refuse long lines early
+        longest = max(len(f) for f in line.split(","))
+        if longest > MAX_FIELD_CHARS:
+            raise csv.Error(f"a field of {longest} characters; at most {MAX_FIELD_CHARS} are allowed")
+    return next(csv.reader([line], skipinitialspace=True), [])
+
+
 def parse_measurements(data: bytes | str, model: RobotModel) -> Measurements:
-    """Parse a contract CSV against the model; raises MeasurementError listing every problem."""
+    """Parse a contract CSV against the model; raises MeasurementError listing every problem.
+
+    Every value is checked against the plausibility ranges of calib_core.model (coordinates, sigma, payload,
+    temperature, timestamps, joint values), so nothing absurd but finite reaches the numerics.  At most
+    MAX_LISTED_ERRORS errors are kept; `total` counts them all."""
     text = _decode(data)
-    lines = [(k + 1, ln) for k, ln in enumerate(text.splitlines())
-             if ln.strip() and not ln.lstrip().startswith(("#", "//"))]
+    lines, commented = [], []
+    for k, ln in enumerate(text.splitlines()):
+        if not ln.strip():
+            continue
+        head = ln.lstrip()
+        if head.startswith(("#", "//")):
+            marker = 1 if head.startswith("#") else 2
+            if head[marker:marker + 1].strip():  # '#P7,...': a point id or a row commented out without a space
+                commented.append((k + 1, head, head[marker:]))
+            continue
+        lines.append((k + 1, ln))
     if not lines:
         raise MeasurementError([{"row": None, "column": None, "value": None, "message": "the file has no header and no data"}])
-    rows = list(csv.reader([ln for _, ln in lines], skipinitialspace=True))
-    header_line, header = lines[0][0], [h.strip() for h in rows[0]]
     errors: list[dict] = []
+    total = 0
 
     def err(row, column, value, message):
-        errors.append({"row": row, "column": column, "value": value, "message": message})
+        nonlocal total
+        total += 1
+        if len(errors) < MAX_LISTED_ERRORS:
+            if isinstance(value, str) and len(value) > 80:
+                value = value[:80] + f"... ({len(value)} characters)"
+            errors.append({"row": row, "column": column, "value": value, "message": message})
+
+    def fail():
+        raise MeasurementError(errors, total=total)
+
+    rows: list[list[str] | None] = []
+    for line, ln in lines:
+        try:
+            rows.append(_split(ln))
+        except csv.Error as exc:
+            if "characters" in str(exc) or "field limit" in str(exc):
+                why = f"a field is longer than {MAX_FIELD_CHARS} characters; no value of a measurement CSV is"
+            else:
+                why = "the line cannot be read as CSV (check its quotes)"
+            err(line, None, ln[:80], why)
+            rows.append(None)
+    if rows[0] is None:
+        fail()
+    header_line, header = lines[0][0], [h.strip() for h in rows[0]]
+    if len(header) > MAX_COLUMNS:
+        err(header_line, None, len(header), f"the header has {len(header)} columns; at most {MAX_COLUMNS} are "
+                                            f"allowed (the model has {model.n_joints} joints)")
+        fail()
 
     seen = set()
     for h in header:
@@ -108,64 +187,95 @@ def parse_measurements(data: bytes | str, model: RobotModel) -> Measurements:
     for need in list(model.joint_names) + ["x", "y", "z"]:
         if need not in header:
             err(header_line, need, None, "missing column" + (" (a joint of the model)" if need in model.joint_names else ""))
-    if errors:
-        raise MeasurementError(errors)
-    if len(rows) == 1:
-        raise MeasurementError([{"row": header_line, "column": None, "value": None, "message": "no data rows"}])
+    if total:
+        fail()
 
     col = {h: k for k, h in enumerate(header)}
+    required = list(model.joint_names) + ["x", "y", "z"]
+    for line, head, body in commented:
+        try:
+            fields = _split(body)
+        except csv.Error:
+            continue
+        if len(fields) == len(header) and all(parse_number(fields[col[c]].strip())[0] is not None for c in required):
+            err(line, "point" if "point" in col else None, head.split(",", 1)[0][:80],
+                "this line starts with '#' or '//', which makes it a comment (contract section 2), yet it holds a "
+                "whole data row; to keep the row, quote its point id (\"#P7\",...); to leave it out, put a space "
+                "after the comment mark ('# P7,...')")
+    if len(rows) == 1:
+        err(header_line, None, None, "no data rows")
+        fail()
+
     js = model.joint_scale()
     lo = model.limits[:, 0] / js
     hi = model.limits[:, 1] / js
+    ls = LENGTH_TO_MM[model.length_unit]
+    rev_max = MAX_REVOLUTE_DEG * ANGLE_TO_RAD["deg"] / ANGLE_TO_RAD[model.angle_unit]
+    point_max = MAX_POINT_MM / ls
+    sig_lo, sig_hi = SIGMA_RANGE_MM[0] / ls, SIGMA_RANGE_MM[1] / ls
+    t_lo, t_hi = TEMPERATURE_RANGE_C
+    unit = model.length_unit
     numeric = list(model.joint_names) + ["x", "y", "z"] + [c for c in ("temperature", "payload", "sigma") if c in col]
     values = {c: np.empty(len(rows) - 1) for c in numeric}
     stamps = np.empty(len(rows) - 1) if "timestamp" in col else None
     ids: list[str] = []
     for i, ((line, _), fields) in enumerate(zip(lines[1:], rows[1:])):
+        if fields is None:
+            continue
         if len(fields) != len(header):
             err(line, None, len(fields), f"expected {len(header)} fields like the header, found {len(fields)}")
             continue
         for c in numeric:
             raw = fields[col[c]].strip()
-            try:
-                v = float(raw)
-            except ValueError:
-                err(line, c, raw, "not a number")
-                continue
-            if not math.isfinite(v):
-                err(line, c, raw, "must be finite (no NaN or inf)")
+            v, why = parse_number(raw)
+            if why:
+                err(line, c, raw, why)
                 continue
             values[c][i] = v
             if c in model.joint_names:
                 j = model.joint_names.index(c)
-                slack = LIMIT_TOL * max(1.0, abs(hi[j] - lo[j]))
+                slack = LIMIT_TOL * max(1.0, abs(hi[j] - lo[j])) if math.isfinite(hi[j] - lo[j]) else 0.0
                 if not lo[j] - slack <= v <= hi[j] + slack:
                     err(line, c, raw, f"outside the joint limits [{lo[j]:g}, {hi[j]:g}] {model.joint_unit(j)}")
-            elif c == "sigma" and v <= 0:
-                err(line, c, raw, "sigma must be > 0")
-            elif c == "payload" and v < 0:
-                err(line, c, raw, "payload must be >= 0 kg")
-            elif c == "temperature" and not -60.0 <= v <= 200.0:
-                err(line, c, raw, "temperature outside -60..200 deg C")
+                elif not model.prismatic[j] and not abs(v) <= rev_max:
+                    err(line, c, raw, f"implausible joint value: |{c}| must be at most {rev_max:g} "
+                                      f"{model.angle_unit} (100 turns)")
+            elif c in ("x", "y", "z"):
+                if not abs(v) <= point_max:
+                    err(line, c, raw, f"implausible coordinate: |{c}| must be at most {point_max:g} {unit}"
+                                      + (f" ({MAX_POINT_MM / 1000:g} m)" if unit != "m" else "")
+                                      + " from the origin of the measurement frame")
+            elif c == "sigma":
+                if not sig_lo <= v <= sig_hi:
+                    err(line, c, raw, f"sigma must be between {sig_lo:g} and {sig_hi:g} {unit} "
+                                      "(the 1-sigma uncertainty of a measured point)")
+            elif c == "payload":
+                if not 0 <= v <= MAX_PAYLOAD_KG:
+                    err(line, c, raw, f"payload must be between 0 and {MAX_PAYLOAD_KG:g} kg")
+            elif c == "temperature" and not t_lo <= v <= t_hi:
+                err(line, c, raw, f"temperature outside {t_lo:g}..{t_hi:g} deg C")
         if stamps is not None:
             raw = fields[col["timestamp"]].strip()
             try:
                 stamps[i] = _parse_time(raw)
-            except ValueError:
+            except (ValueError, OverflowError):
                 err(line, "timestamp", raw, "not an ISO 8601 timestamp (e.g. 2026-11-03T08:00:19+00:00)")
+            else:
+                if not TIMESTAMP_RANGE_S[0] <= stamps[i] < TIMESTAMP_RANGE_S[1]:
+                    err(line, "timestamp", raw, f"timestamp outside {TIMESTAMP_RANGE_UTC[0][:10]} .. "
+                                                f"{TIMESTAMP_RANGE_UTC[1][:10]} (UTC)")
         ids.append(fields[col["point"]].strip() if "point" in col else str(i + 1))
-    if errors:
-        raise MeasurementError(errors[:MAX_LISTED_ERRORS], total=len(errors))
+    if total:
+        fail()
     if "point" in col:
         dup: dict[str, int] = {}
         for (line, _), pid in zip(lines[1:], ids):
             if pid in dup:
                 err(line, "point", pid, f"duplicated point id (first on line {dup[pid]})")
             dup.setdefault(pid, line)
-        if errors:
-            raise MeasurementError(errors[:MAX_LISTED_ERRORS], total=len(errors))
+        if total:
+            fail()
 
-    ls = LENGTH_TO_MM[model.length_unit]
     joints = np.column_stack([values[c] for c in model.joint_names]) * js
     points = np.column_stack([values[c] for c in ("x", "y", "z")]) * ls
     return Measurements(

@@ -7,6 +7,7 @@ exactly to MD-H (Craig / Hayati) so that one kinematics and one Jacobian serve b
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,6 +17,114 @@ ANGLE_TO_RAD = {"deg": math.pi / 180.0, "rad": 1.0}
 GEOMETRIC = ("a", "alpha", "d", "theta", "beta")
 """Per-joint MD-H parameters in the order of the parameter vector."""
 ANGULAR = {"alpha", "theta", "beta"}
+
+# Plausibility ranges at the input, in one place, internal units in the names.  Generous for any real cell
+# (a 100 m hall, a 10 t payload, a tracker to an interferometer), and a wall in front of the numerics: a finite
+# but absurd value (a coordinate of 1e305, sigma 1e-300, a payload of 1e308 kg) is a 422 naming the field,
+# never a job that spins or a raw ZeroDivisionError.  Messages state the range in the model's own units.
+MAX_LENGTH_MM = 1e5
+"""|a|, |d|, tool, centre of mass, prismatic travel and limits: 100 m."""
+MAX_POINT_MM = 1e5
+"""|x|, |y|, |z| of a measured point or a compensate target in the measurement frame: 100 m."""
+MAX_MODEL_ANGLE_DEG = 720.0
+"""|alpha|, |theta|, |beta| of a model row: two turns."""
+MAX_REVOLUTE_DEG = 36000.0
+"""|value| of a revolute joint (limits, CSV, predict): 100 turns."""
+MAX_MASS_KG = 1e5
+"""mass of one body: 100 t."""
+MAX_PAYLOAD_KG = 1e4
+"""payload at the tool: 10 t."""
+MAX_GRAVITY_MS2 = 20.0
+"""|gravity| in m/s^2: about twice the Earth's (9.81); a vector in mm/s^2 is caught."""
+SIGMA_RANGE_MM = (1e-4, 100.0)
+"""1-sigma measurement uncertainty of a point: 0.1 um (an interferometer) to 100 mm."""
+TEMPERATURE_RANGE_C = (-60.0, 200.0)
+TIMESTAMP_RANGE_UTC = ("1970-01-01T00:00:00+00:00", "2200-01-01T00:00:00+00:00")
+TIMESTAMP_RANGE_S = (0.0, 7258118400.0)
+"""The same range in seconds since the epoch."""
+JOINT_MARGIN_FRACTION = 0.1
+"""predict / compensate: a joint value beyond its limits by more than this share of the joint's range is refused."""
+MAX_NAME_CHARS = 200
+"""robot name (the database column holds 200)."""
+MAX_JOINT_NAME_CHARS = 100
+MAX_JSON_DEPTH = 20
+"""nesting depth of a model document (the contract's own is 4)."""
+RESERVED_COLUMNS = ("point", "x", "y", "z", "timestamp", "temperature", "payload", "payload_kg", "sigma",
+                    "target", "setup", "qw", "qx", "qy", "qz")
+"""The measurement CSV's own columns (contract sections 2 and 5): no joint may be named like one."""
+RESERVED_PREFIXES = ("tau_",)
+"""`tau_<joint>` columns carry measured joint torques (contract section 5)."""
+_UNSAFE_NAME = re.compile(r'[\x00-\x1f\x7f-\x9f,"\u2028\u2029]')
+"""Characters a CSV header cannot carry as written: comma, quote, control characters, line breaks."""
+
+
+def length_text(mm: float, unit: str) -> str:
+    """A length given in mm, written in the model's length unit: '100000 mm' or '100 m'."""
+    return f"{mm / LENGTH_TO_MM.get(unit, 1.0):g} {unit if unit in LENGTH_TO_MM else 'mm'}"
+
+
+def angle_text(deg: float, unit: str) -> str:
+    return f"{deg:g} deg" if unit != "rad" else f"{math.radians(deg):.6g} rad"
+
+
+def name_problem(name, *, what: str = "joint name", max_chars: int = MAX_JOINT_NAME_CHARS,
+                 csv_column: bool = True) -> str | None:
+    """Why `name` cannot be used (plain words), or None when it can."""
+    if not isinstance(name, str):
+        return f"the {what} must be a text string"
+    if not name.strip():
+        return f"the {what} must not be empty"
+    if len(name) > max_chars:
+        return f"the {what} is {len(name)} characters long; at most {max_chars} are allowed"
+    if "\x00" in name:
+        return f"the {what} must not contain a NUL character"
+    if not csv_column:
+        if any(c < " " or c == "\x7f" for c in name):
+            return f"the {what} must not contain control characters or line breaks"
+        return None
+    if name != name.strip():
+        return f"the {what} must not start or end with spaces (it is a CSV column header)"
+    m = _UNSAFE_NAME.search(name)
+    if m:
+        return (f"the {what} cannot be a CSV column header: it contains {m.group()!r}; "
+                "use letters, digits, spaces, '_', '-' or '.'")
+    if name.startswith(("#", "//")):
+        return f"the {what} must not start with '#' or '//' (a CSV line starting so is a comment)"
+    if name in RESERVED_COLUMNS:
+        return (f"{name!r} is a column of the measurement CSV ({', '.join(RESERVED_COLUMNS)}); "
+                f"name the joint differently, e.g. 'J_{name}'")
+    if name.startswith(RESERVED_PREFIXES):
+        return "joint names must not start with 'tau_' (the CSV's measured-torque columns are named tau_<joint>)"
+    return None
+
+
+def _json_problems(doc, max_errors: int = 50) -> list[dict]:
+    """NaN/Infinity literals, NUL characters and too deep nesting anywhere in a JSON document, with the
+    field path of each; walked without recursion so any depth is safe."""
+    errors: list[dict] = []
+    stack = [("", doc, 1)]
+    while stack and len(errors) < max_errors:
+        path, v, depth = stack.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            errors.append({"field": path, "value": str(v),
+                           "message": "must be a finite number (NaN and Infinity are not JSON numbers)"})
+        elif isinstance(v, str) and "\x00" in v:
+            errors.append({"field": path, "value": v[:80], "message": "must not contain a NUL character"})
+        elif isinstance(v, (dict, list)):
+            if depth > MAX_JSON_DEPTH:
+                errors.append({"field": path, "value": None, "message": f"nested deeper than {MAX_JSON_DEPTH} "
+                               "levels; a model document is at most a few levels deep"})
+                continue
+            items = v.items() if isinstance(v, dict) else enumerate(v)
+            kids = []
+            for k, x in items:
+                if isinstance(k, str) and "\x00" in k:
+                    errors.append({"field": path, "value": k[:80], "message": "a key must not contain a NUL character"})
+                    continue
+                kp = (f"{path}.{k}" if path else str(k)) if isinstance(v, dict) else f"{path}[{k}]"
+                kids.append((kp, x, depth + 1))
+            stack.extend(reversed(kids))
+    return errors
 
 
 class ModelError(ValueError):
@@ -104,11 +213,27 @@ def _finite_number(errors, fieldname, value) -> float | None:
     return float(value)
 
 
-def _vector(errors, fieldname, value, n=3) -> np.ndarray | None:
+def _in_range(errors, fieldname, value, bound: float, text: str) -> float | None:
+    """value (a finite float or None) must satisfy |value| <= bound; text names the bound in the user's units."""
+    if value is not None and not abs(value) <= bound:
+        errors.append({"field": fieldname, "value": value, "message": f"implausible: |{fieldname.rsplit('.', 1)[-1]}| "
+                       f"must be at most {text}"})
+        return None
+    return value
+
+
+def _vector(errors, fieldname, value, n=3, bound: float | None = None, text: str = "") -> np.ndarray | None:
     if not isinstance(value, (list, tuple)) or len(value) != n:
         errors.append({"field": fieldname, "value": value, "message": f"must be a list of {n} numbers"})
         return None
     out = [_finite_number(errors, f"{fieldname}[{k}]", v) for k, v in enumerate(value)]
+    if bound is not None:
+        bad = [(k, v) for k, v in enumerate(out) if v is not None and not abs(v) <= bound]
+        for k, v in bad:
+            errors.append({"field": f"{fieldname}[{k}]", "value": v,
+                           "message": f"implausible: each component must be at most {text} in size"})
+        if bad:
+            return None
     return None if any(v is None for v in out) else np.array(out, dtype=float)
 
 
@@ -117,22 +242,34 @@ def parse_model(doc: dict) -> RobotModel:
     errors: list[dict] = []
     if not isinstance(doc, dict):
         raise ModelError([{"field": "", "value": type(doc).__name__, "message": "model must be a JSON object"}])
+    bad_json = _json_problems(doc)
+    if bad_json:
+        raise ModelError(bad_json)
     name = doc.get("name", "robot")
     if not isinstance(name, str) or not name.strip():
         errors.append({"field": "name", "value": name, "message": "must be a non-empty string"})
+    else:
+        why = name_problem(name, what="robot name", max_chars=MAX_NAME_CHARS, csv_column=False)
+        if why:
+            errors.append({"field": "name", "value": name, "message": why})
     convention = doc.get("convention", "mdh")
-    if convention not in ("mdh", "dh"):
+    if not isinstance(convention, str) or convention not in ("mdh", "dh"):
         errors.append({"field": "convention", "value": convention, "message": "must be 'mdh' or 'dh'"})
     units = doc.get("units", {"length": "mm", "angle": "deg"})
     if not isinstance(units, dict):
         errors.append({"field": "units", "value": units, "message": "must be an object {length, angle}"})
         units = {}
     lu, au = units.get("length", "mm"), units.get("angle", "deg")
-    if lu not in LENGTH_TO_MM:
+    if not isinstance(lu, str) or lu not in LENGTH_TO_MM:
         errors.append({"field": "units.length", "value": lu, "message": "unknown length unit; use 'mm' or 'm'"})
-    if au not in ANGLE_TO_RAD:
+        lu = "mm"
+    if not isinstance(au, str) or au not in ANGLE_TO_RAD:
         errors.append({"field": "units.angle", "value": au, "message": "unknown angle unit; use 'deg' or 'rad'"})
-    ls, an = LENGTH_TO_MM.get(lu, 1.0), ANGLE_TO_RAD.get(au, 1.0)
+        au = "deg"
+    ls, an = LENGTH_TO_MM[lu], ANGLE_TO_RAD[au]
+    len_max = length_text(MAX_LENGTH_MM, lu)
+    ang_max = angle_text(MAX_MODEL_ANGLE_DEG, au)
+    rev_max = angle_text(MAX_REVOLUTE_DEG, au)
 
     joints = doc.get("joints")
     if not isinstance(joints, list) or not joints:
@@ -147,14 +284,14 @@ def parse_model(doc: dict) -> RobotModel:
             errors.append({"field": where, "value": jd, "message": "must be an object"})
             continue
         jname = jd.get("name")
-        if not isinstance(jname, str) or not jname.strip() or "," in jname:
-            errors.append({"field": f"{where}.name", "value": jname,
-                           "message": "must be a non-empty string without commas (it is a CSV column)"})
+        why = name_problem(jname)
+        if why:
+            errors.append({"field": f"{where}.name", "value": jname, "message": why})
         elif jname in names:
             errors.append({"field": f"{where}.name", "value": jname, "message": "duplicate joint name"})
         names.append(jname)
         jtype = jd.get("type", "revolute")
-        if jtype not in ("revolute", "prismatic"):
+        if not isinstance(jtype, str) or jtype not in ("revolute", "prismatic"):
             errors.append({"field": f"{where}.type", "value": jtype, "message": "must be 'revolute' or 'prismatic'"})
         prismatic.append(jtype == "prismatic")
         row = []
@@ -166,6 +303,10 @@ def parse_model(doc: dict) -> RobotModel:
                 row.append(0.0)
                 continue
             v = _finite_number(errors, f"{where}.{p}", jd.get(p, 0.0))
+            if p in ANGULAR:
+                v = _in_range(errors, f"{where}.{p}", v, MAX_MODEL_ANGLE_DEG * (math.pi / 180.0) / an, ang_max)
+            else:
+                v = _in_range(errors, f"{where}.{p}", v, MAX_LENGTH_MM / ls, len_max)
             row.append(0.0 if v is None else v * (an if p in ANGULAR else ls))
         rows.append(row)
         lim = jd.get("limits")
@@ -177,23 +318,32 @@ def parse_model(doc: dict) -> RobotModel:
                 lim = [0.0, 0.0]
             limits.append(lim)
         else:
-            lv = _vector(errors, f"{where}.limits", lim, 2)
+            if jtype == "prismatic":
+                lv = _vector(errors, f"{where}.limits", lim, 2, MAX_LENGTH_MM / ls, len_max)
+            else:
+                lv = _vector(errors, f"{where}.limits", lim, 2, MAX_REVOLUTE_DEG * (math.pi / 180.0) / an,
+                             rev_max + " (100 turns; leave limits out for an unlimited joint)")
             if lv is not None and lv[0] >= lv[1]:
                 errors.append({"field": f"{where}.limits", "value": lim,
                                "message": "lower limit must be below upper limit"})
             limits.append([0.0, 0.0] if lv is None else list(lv * jscale))
         if "mass" in jd or "com" in jd:
             m = _finite_number(errors, f"{where}.mass", jd.get("mass"))
-            if m is not None and m < 0:
-                errors.append({"field": f"{where}.mass", "value": m, "message": "mass must be >= 0 kg"})
-            c = _vector(errors, f"{where}.com", jd.get("com", [0.0, 0.0, 0.0]))
+            if m is not None and not 0 <= m <= MAX_MASS_KG:
+                errors.append({"field": f"{where}.mass", "value": m,
+                               "message": f"mass must be between 0 and {MAX_MASS_KG:g} kg"})
+            c = _vector(errors, f"{where}.com", jd.get("com", [0.0, 0.0, 0.0]), 3, MAX_LENGTH_MM / ls, len_max)
             masses.append(m)
             coms.append(None if c is None else c * ls)
         else:
             masses.append(None)
             coms.append(None)
-    tool = _vector(errors, "tool", doc.get("tool", [0.0, 0.0, 0.0]))
+    tool = _vector(errors, "tool", doc.get("tool", [0.0, 0.0, 0.0]), 3, MAX_LENGTH_MM / ls, len_max)
     gravity = _vector(errors, "gravity", doc.get("gravity", [0.0, 0.0, -9.81]))
+    if gravity is not None and not float(np.linalg.norm(gravity)) <= MAX_GRAVITY_MS2:
+        errors.append({"field": "gravity", "value": doc.get("gravity"),
+                       "message": f"implausible: |gravity| is {float(np.linalg.norm(gravity)):.4g} m/s^2, at most "
+                                  f"{MAX_GRAVITY_MS2:g} m/s^2 (the Earth's is 9.81; gravity is in m/s^2, not mm/s^2)"})
     has_mass = [m is not None for m in masses]
     if any(has_mass) and not all(has_mass):
         missing = [names[j] for j, h in enumerate(has_mass) if not h]

@@ -76,3 +76,115 @@ def test_binary_and_wrong_encoding_are_rejected():
 def test_duplicated_point_ids():
     errs = _errors("\n".join([HEADER, ROW, ROW]))
     assert errs[0]["row"] == 3 and errs[0]["column"] == "point"
+
+
+# Issue 10: plausibility ranges, csv.Error, strict numbers, '#' ids, bounded error lists.
+
+def _model_in_metres():
+    doc = spray7()
+    doc["units"] = {"length": "m", "angle": "deg"}
+    for j in doc["joints"]:
+        j["a"], j["d"] = j["a"] / 1000, j["d"] / 1000
+        j["com"] = [v / 1000 for v in j["com"]]
+        if j["type"] == "prismatic":
+            j["limits"] = [v / 1000 for v in j["limits"]]
+    doc["tool"] = [v / 1000 for v in doc["tool"]]
+    return parse_model(doc)
+
+
+def _with(column, value):
+    head, row = HEADER.split(","), ROW.split(",")
+    if column in head:
+        row[head.index(column)] = value
+    else:
+        head.append(column)
+        row.append(value)
+    return ",".join(head) + "\n" + ",".join(row) + "\n"
+
+
+@pytest.mark.parametrize("column, value, words", [
+    ("x", "1e305", "at most 100000 mm"),
+    ("y", "-1e30", "at most 100000 mm"),
+    ("z", "1e200", "at most 100000 mm"),
+    ("x", "1e400", "finite"),
+    ("sigma", "1e-300", "between 0.0001 and 100 mm"),
+    ("sigma", "1e200", "between 0.0001 and 100 mm"),
+    ("sigma", "0", "between"),
+    ("payload", "1e308", "between 0 and 10000 kg"),
+    ("payload", "-1", "between 0 and 10000 kg"),
+    ("temperature", "1e10", "-60..200 deg C"),
+    ("timestamp", "9999-12-31T23:59:59+00:00", "1970-01-01 .. 2200-01-01"),
+    ("timestamp", "1900-01-01T00:00:00+00:00", "1970-01-01 .. 2200-01-01"),
+])
+def test_implausible_values_name_row_column_value_and_range(column, value, words):
+    errs = _errors(_with(column, value))
+    assert any(e["row"] == 2 and e["column"] == column and e["value"] == value and words in e["message"]
+               for e in errs), errs
+
+
+def test_ranges_respect_the_model_length_unit():
+    m = _model_in_metres()
+    row = "P001,3.098611678,54.315206,-45.791980,73.781843,-76.455800,1.757014212,-70.779606,{x},0.8766147,-0.0163583,"
+    text = HEADER + "\n" + row + "2026-11-03T08:00:19+00:00\n"
+    assert parse_measurements(text.format(x="99.5"), m).points[0, 0] == 99.5e3  # 99.5 m is plausible
+    with pytest.raises(MeasurementError) as exc:
+        parse_measurements(text.format(x="1000"), m)  # 1 km is not
+    assert [(e["column"], e["value"]) for e in exc.value.errors] == [("x", "1000")], exc.value.errors
+    assert "at most 100 m" in exc.value.errors[0]["message"]
+
+
+def test_revolute_joint_without_limits_is_bounded():
+    doc = spray7()
+    del doc["joints"][1]["limits"]
+    m = parse_model(doc)
+    assert parse_measurements(_with("J2", "720"), m).n_poses == 1
+    with pytest.raises(MeasurementError) as exc:
+        parse_measurements(_with("J2", "1e200"), m)
+    assert exc.value.errors[0]["column"] == "J2" and "36000 deg" in exc.value.errors[0]["message"]
+
+
+def test_field_over_csv_limit_names_its_row():
+    long = "P" + "9" * 131_073
+    errs = _errors(HEADER + "\n" + ROW + "\n" + ROW.replace("P001", long) + "\n")
+    assert len(errs) == 1 and errs[0]["row"] == 3 and "131072 characters" in errs[0]["message"], errs
+    assert len(str(errs[0]["value"])) < 200  # the value is cut, not echoed whole
+
+
+@pytest.mark.parametrize("value", ["1_000", "٣", "３", "1e1_0", "0x10", "1.5.2", "١٢٣.٤", "²"])
+def test_underscores_and_unicode_digits_are_not_numbers(value):
+    errs = _errors(HEADER + "\n" + ROW.replace("-2821.3401", value))
+    assert any(e["row"] == 2 and e["column"] == "x" and "not a number" in e["message"] for e in errs), errs
+
+
+@pytest.mark.parametrize("value", ["1", "-1.", ".5", "+2.5e-3", "1E3", " 7 "])
+def test_plain_numbers_still_parse(value):
+    assert parse_measurements(HEADER + "\n" + ROW.replace("-2821.3401", value), MODEL).n_poses == 1
+
+
+def test_a_point_id_starting_with_hash_never_drops_its_row_silently():
+    row2 = ROW.replace("P001", "P002")
+    errs = _errors("\n".join([HEADER, ROW, "#" + row2]))  # a comment by the contract, but a whole data row
+    assert len(errs) == 1 and errs[0]["row"] == 3 and errs[0]["column"] == "point", errs
+    assert "comment" in errs[0]["message"] and "quote" in errs[0]["message"]
+    quoted = parse_measurements("\n".join([HEADER, ROW, '"#P002"' + row2[4:]]), MODEL)  # a quoted id is data
+    assert quoted.point_ids == ["P001", "#P002"]
+    commented = parse_measurements("\n".join([HEADER, ROW, "# " + row2, "// " + row2, "#note: tracker warm"]), MODEL)
+    assert commented.point_ids == ["P001"]  # '# ' with a space comments a row out, as before
+
+
+def test_error_lists_are_bounded_and_counted():
+    import time
+    t = time.perf_counter()
+    header = "," * 1_800_000  # a 1.8 MB header of empty columns
+    with pytest.raises(MeasurementError) as exc:
+        parse_measurements(header + "\n" + ROW, MODEL)
+    assert time.perf_counter() - t < 2.0
+    assert len(exc.value.errors) == 1 and "columns" in exc.value.errors[0]["message"]
+    bad = "\n".join([HEADER] + [ROW.replace("P001", f"P{i}").replace("54.315206", "abc") for i in range(5000)])
+    with pytest.raises(MeasurementError) as exc:
+        parse_measurements(bad, MODEL)
+    assert exc.value.total == 5000 and len(exc.value.errors) <= 1000
+
+
+def test_nul_anywhere_is_binary():
+    assert "binary" in _errors((HEADER + "\n" + ROW + "\n" + " " * 70_000 + "\x00").encode())[0]["message"]

@@ -89,3 +89,110 @@ def test_to_dict_round_trips():
     assert np.allclose(m.geometry, m2.geometry) and np.allclose(m.limits, m2.limits) and np.allclose(m.tool, m2.tool)
     d = parse_model(arm6())
     assert np.allclose(parse_model(d.to_dict()).geometry, d.geometry)
+
+
+# Issue 10: plausibility ranges, CSV-safe joint names, PostgreSQL-safe strings, plain words.
+
+def _metres(doc):
+    doc["units"] = {"length": "m", "angle": "deg"}
+    return doc
+
+
+@pytest.mark.parametrize("mutate, field, text", [
+    (lambda d: d["joints"][3].update(a=1e200), "joints[3].a", "at most 100000 mm"),
+    (lambda d: _metres(d)["joints"][3].update(a=1e3), "joints[3].a", "at most 100 m"),
+    (lambda d: d["joints"][2].update(d=-1e305), "joints[2].d", "at most 100000 mm"),
+    (lambda d: d["joints"][2].update(theta=1e200), "joints[2].theta", "at most 720 deg"),
+    (lambda d: d["joints"][1].update(mass=1e308), "joints[1].mass", "between 0 and 100000 kg"),
+    (lambda d: d["joints"][1].update(com=[0, 1e200, 0]), "joints[1].com[1]", "at most 100000 mm"),
+    (lambda d: d.update(tool=[1e305, 0, 0]), "tool[0]", "at most 100000 mm"),
+    (lambda d: d.update(gravity=[0, 0, -9810]), "gravity", "not mm/s^2"),
+    (lambda d: d["joints"][0].update(limits=[0, 1e9]), "joints[0].limits[1]", "at most 100000 mm"),
+    (lambda d: d["joints"][1].update(limits=[-1e9, 1e9]), "joints[1].limits[0]", "36000 deg"),
+])
+def test_implausible_values_are_rejected_with_the_range(mutate, field, text):
+    doc = spray7()
+    mutate(doc)
+    with pytest.raises(ModelError) as exc:
+        parse_model(doc)
+    assert any(e["field"] == field and text in e["message"] for e in exc.value.errors), exc.value.errors
+
+
+@pytest.mark.parametrize("name", ["point", "x", "y", "z", "timestamp", "temperature", "payload", "payload_kg",
+                                  "sigma", "target", "setup", "qw", "qx", "qy", "qz", "tau_J1"])
+def test_joint_names_that_are_csv_columns_are_rejected(name):
+    doc = spray7()
+    doc["joints"][2]["name"] = name
+    with pytest.raises(ModelError) as exc:
+        parse_model(doc)
+    assert [e["field"] for e in exc.value.errors] == ["joints[2].name"], exc.value.errors
+
+
+@pytest.mark.parametrize("name", ["J,3", 'J"3', "J\n3", "J\r3", "J\x003", "J\t3", " J3", "J3 ", "", "   ",
+                                  "#J3", "//J3", "J\u20283", "J" * 101, 3, None, ["J3"]])
+def test_joint_names_that_cannot_be_csv_headers_are_rejected(name):
+    doc = spray7()
+    doc["joints"][2]["name"] = name
+    with pytest.raises(ModelError) as exc:
+        parse_model(doc)
+    errs = exc.value.errors
+    assert [e["field"] for e in errs] == ["joints[2].name"], errs
+    assert "unhashable" not in errs[0]["message"] and "'list'" not in errs[0]["message"]
+
+
+def test_joint_names_with_spaces_dots_dollars_and_case_variants_are_legal():
+    doc = spray7()
+    for j, name in zip(doc["joints"], ["Joint 1", "J.2", "J$3", "X", "Point", "tau", "J-7"]):
+        j["name"] = name
+    assert parse_model(doc).joint_names[3] == "X"  # CSV columns match case-sensitively: 'X' is not 'x'
+
+
+@pytest.mark.parametrize("name, text", [("r" * 201, "at most 200"), ("spray\x007", "NUL"), ("spray\n7", "line breaks")])
+def test_robot_names_the_database_cannot_hold_are_rejected(name, text):
+    doc = spray7()
+    doc["name"] = name
+    with pytest.raises(ModelError) as exc:
+        parse_model(doc)
+    assert any(e["field"] == "name" and text in e["message"] for e in exc.value.errors), exc.value.errors
+    doc["name"] = "r" * 200
+    assert parse_model(doc).name == "r" * 200
+
+
+def _nested(depth):
+    v = [1]
+    for _ in range(depth):
+        v = [v]
+    return v
+
+
+def test_nan_nul_and_deep_nesting_anywhere_are_named():
+    for extra, field, text in [({"note": float("nan")}, "note", "finite"),
+                               ({"joints_extra": [1.0, float("inf")]}, "joints_extra[1]", "finite"),
+                               ({"note": "a\x00b"}, "note", "NUL"),
+                               ({"note": _nested(25)}, "note", "nested deeper")]:
+        doc = {**spray7(), **extra}
+        with pytest.raises(ModelError) as exc:
+            parse_model(doc)
+        assert any(e["field"].startswith(field) and text in e["message"] for e in exc.value.errors), exc.value.errors
+    deep = {**spray7(), "note": []}
+    node = deep["note"]
+    for _ in range(100_000):  # far deeper than Python's recursion limit
+        node.append([])
+        node = node[0]
+    with pytest.raises(ModelError):
+        parse_model(deep)
+
+
+@pytest.mark.parametrize("mutate, field", [
+    (lambda d: d.update(units={"length": ["mm"], "angle": "deg"}), "units.length"),
+    (lambda d: d.update(units={"length": "mm", "angle": {"a": 1}}), "units.angle"),
+    (lambda d: d.update(convention=["mdh"]), "convention"),
+    (lambda d: d["joints"][0].update(type=["prismatic"]), "joints[0].type"),
+])
+def test_wrong_kinds_are_named_in_plain_words(mutate, field):
+    doc = spray7()
+    mutate(doc)
+    with pytest.raises(ModelError) as exc:
+        parse_model(doc)
+    assert any(e["field"] == field for e in exc.value.errors), exc.value.errors
+    assert "unhashable" not in str(exc.value)
