@@ -21,7 +21,10 @@ from scipy.optimize import least_squares as scipy_least_squares
 from benchmarks import best_time  # noqa: E402
 from calib_core import kinematics as K
 from calib_core.identifiability import analyse
-from calib_core.identify import identify, prealign, tracker_sigma_mm
+from calib_core.identify import identify, prealign
+from calib_core.instruments import INSTRUMENTS
+
+tracker_sigma_mm = INSTRUMENTS["laser_tracker"].sigma_mm
 from calib_core.model import parse_model
 from calib_core.robots import spray7
 from calib_core.twin import Twin

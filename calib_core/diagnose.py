@@ -26,7 +26,7 @@ from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, _as_tuple, g
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import probes, session_clock, step_candidates
-from .identify import Calibration, effect_bases, identify, tracker_sigma_mm
+from .identify import Calibration, effect_bases, identify
 from .select import select_geometry
 from .solve import OUTLIER_U
 from .statics import joint_loads
@@ -72,8 +72,9 @@ def noise_floor_mm(meas: Measurements, sigma: np.ndarray, repeatability_mm: floa
         repeatability_mm, how = (rep, "repeats") if rep is not None else (DEFAULT_REPEATABILITY_MM, "assumed")
     floor = float(np.sqrt(3 * np.mean(sigma**2) + 3 * repeatability_mm**2))
     said = {"given": "given", "repeats": "from repeated poses", "assumed": "assumed"}[how]
-    return floor, (f"instrument sigma {np.sqrt(np.mean(sigma**2)) * 1000:.0f} um per axis, robot repeatability "
-                   f"{repeatability_mm * 1000:.0f} um per axis ({said})"), how
+    return floor, (f"instrument sigma {np.sqrt(np.mean(sigma**2)) * 1000:.0f} um per axis (from "
+                   f"{meas.noise_source()}), robot repeatability {repeatability_mm * 1000:.0f} um per axis "
+                   f"({said})"), how
 
 
 def _repeatability_from_repeats(meas: Measurements, sigma: np.ndarray) -> float | None:
@@ -125,6 +126,7 @@ class Diagnosis:
     explanation: str = ""
     loss: str | None = None
     selection: dict = field(default_factory=dict)  # how the geometric model's size was chosen (held out)
+    noise_model: str = ""  # which noise model weighted the fit: the CSV's sigma or an instrument preset
 
     def model_error_mm(self, cal: Calibration) -> float:
         """De-noised model error: the root of held-out mean square distance minus the floor's (mm)."""
@@ -155,6 +157,7 @@ class Diagnosis:
             "noise_floor_mm": self.noise_floor_mm,
             "noise_floor_basis": self.noise_note,
             "noise_floor_source": self.floor_basis,
+            "noise_model": self.noise_model,
             "nominal": {k: self.nominal.metrics()[k] for k in ("rms_mm", "max_mm", "holdout_rms_mm", "holdout_max_mm")},
             "geometric": {"rms_mm": g["rms_mm"], "holdout_rms_mm": g["holdout_rms_mm"], "max_mm": g["max_mm"],
                           "holdout_max_mm": g["holdout_max_mm"], "model_error_mm": self.model_error_mm(self.geometric)},
@@ -735,7 +738,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     loss 'auto' fits with the Huber loss when a first robust fit names outliers (they are listed), else
     with plain least squares."""
     report = progress or (lambda f, msg: None)
-    sigma = meas.sigma if meas.sigma is not None else tracker_sigma_mm(meas.points)
+    sigma = meas.noise_sigma_mm()
     report(0.05, "identifying the geometric model")
     notes: list[str] = []
     if loss == "auto":
@@ -855,7 +858,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
     d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,
                   floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss,
-                  selection=selection.to_dict())
+                  selection=selection.to_dict(), noise_model=meas.noise_source())
     d.explanation = explain(d, model)
     report(1.0, "diagnosis done")
     return d

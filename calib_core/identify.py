@@ -24,23 +24,15 @@ from .io import Measurements
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, RobotModel
 from .solve import Solution, least_squares
 
-TRACKER_SIGMA0_MM = 0.015
-TRACKER_SIGMA_PER_M_MM = 0.006
-"""Laser-tracker 1-sigma per coordinate: 15 um + 6 um/m of distance from the tracker (frame origin)."""
 PRIOR_STD_MM = 100.0
 PRIOR_STD_RAD = 0.1
 """Default Tikhonov prior toward nominal: weak, it only steadies a poorly excited pose set."""
 DISTINCT_DECIMALS = 9
 """Joint vectors equal after rounding to this many decimals (rad / mm) are the same configuration."""
 UNCERTAINTY_NOTE = ("std are 1-sigma of the estimates conditional on the identified model being the right one "
-                    "(geometry plus the listed effects, noise weighted by the tracker model and the fitted model "
+                    "(geometry plus the listed effects, noise weighted by the instrument's model and the fitted model "
                     "error); they do not cover errors of a structure the model lacks. null = not determined by "
                     "the data and the prior.")
-
-
-def tracker_sigma_mm(points_mm: np.ndarray) -> np.ndarray:
-    """Per-pose 1-sigma (mm) of a laser tracker at the origin of the measurement frame."""
-    return TRACKER_SIGMA0_MM + TRACKER_SIGMA_PER_M_MM * np.linalg.norm(points_mm, axis=1) / 1000.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,6 +107,7 @@ class Calibration:
     sigma0_measurement: float | None = None  # sigma0 of the fit weighted by the measurement noise alone
     prior_scale: float = 1.0  # multiplier of the default prior precision of the joint parameters
     x_basis: np.ndarray | None = None  # the geometry the effect bases were evaluated on
+    noise_model: str = ""  # which noise model weighted the fit: the CSV's sigma or an instrument preset
     unmodelled_mm: float = 0.0  # per-axis std of held-out structure no cause in the model explains (diagnose sets it)
 
     @property
@@ -147,6 +140,7 @@ class Calibration:
             "uncertainty": {"conditional_on_model": True, "note": UNCERTAINTY_NOTE,
                             "unmodelled_mm_per_axis": self.unmodelled_mm},
             "warnings": self.warnings,
+            "noise_model": self.noise_model,
             "base_pose": {"position_mm": pb.tolist(), "rotation_matrix": Rb.tolist()},
             "calibrated_model": self.model.to_dict(self.x[: 5 * n].reshape(n, 5), self.x[5 * n + 6:]),
         }
@@ -364,7 +358,7 @@ def identify(
                 f"the {meas.n_poses} poses are only {n_distinct} distinct joint configurations")
         raise ValueError(f"{what}: a calibration needs at least {n_min} different poses (better: dozens spread "
                          "over every joint's range); measure more poses")
-    sigma = meas.sigma if meas.sigma is not None else tracker_sigma_mm(meas.points)
+    sigma = meas.noise_sigma_mm()
     x0, R0 = prealign(model, meas)
     names = K.parameter_names(model)
     J = K.Chain(model, x0, meas.joints, R0).jacobian().reshape(-1, len(x0))
@@ -394,7 +388,7 @@ def identify(
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
                       point_ids=list(meas.point_ids), effects=tuple(effects), sigma_mm=sigma,
                       model_error_mm=s_model, sigma0_measurement=sigma0_measurement, prior_scale=prior_scale,
-                      x_basis=x_ref if effects else None)
+                      x_basis=x_ref if effects else None, noise_model=meas.noise_source())
     if folds > 1 and meas.n_poses >= 2 * folds:
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
                                                  eprior, prior_scale=prior_scale)

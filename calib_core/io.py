@@ -14,6 +14,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+from .instruments import INSTRUMENTS, instrument
 from .model import (ANGLE_TO_RAD, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM, MAX_REVOLUTE_DEG, SIGMA_RANGE_MM,
                     TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC, RobotModel)
 
@@ -45,10 +46,22 @@ class Measurements:
     temperature: np.ndarray | None = None  # (N,) deg C
     payload: np.ndarray | None = None  # (N,) kg
     sigma: np.ndarray | None = None  # (N,) mm, 1-sigma per coordinate
+    instrument: str | None = None  # noise preset (calib_core.instruments) used where `sigma` is absent
 
     @property
     def n_poses(self) -> int:
         return len(self.points)
+
+    def noise_sigma_mm(self) -> np.ndarray:
+        """Per-pose 1-sigma (mm) per axis: the CSV's `sigma`, else the instrument preset (default laser tracker)."""
+        return self.sigma if self.sigma is not None else instrument(self.instrument).sigma_mm(self.points)
+
+    def noise_source(self) -> str:
+        """Which noise model the fit weights and the noise floor use, in words."""
+        if self.sigma is not None:
+            return "the CSV's sigma column"
+        said = "" if self.instrument else ", assumed: no sigma column and no instrument given"
+        return f"the {instrument(self.instrument).describe()} preset{said}"
 
     def payload_kg(self) -> np.ndarray:
         return np.zeros(self.n_poses) if self.payload is None else self.payload
@@ -58,7 +71,7 @@ class Measurements:
         pick = lambda a: None if a is None else a[idx]  # noqa: E731
         ids = [self.point_ids[i] for i in np.arange(self.n_poses)[idx]] if self.point_ids else []
         return Measurements(self.joints[idx], self.points[idx], ids, pick(self.timestamp),
-                            pick(self.temperature), pick(self.payload), pick(self.sigma))
+                            pick(self.temperature), pick(self.payload), pick(self.sigma), self.instrument)
 
 
 def _decode(data: bytes | str) -> str:
@@ -121,12 +134,17 @@ def _split(line: str) -> list[str]:
     return next(csv.reader([line], skipinitialspace=True), [])
 
 
-def parse_measurements(data: bytes | str, model: RobotModel) -> Measurements:
+def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | None = None) -> Measurements:
     """Parse a contract CSV against the model; raises MeasurementError listing every problem.
+
+    `instrument` names the noise preset (calib_core.instruments) for rows without a `sigma` column.
 
     Every value is checked against the plausibility ranges of calib_core.model (coordinates, sigma, payload,
     temperature, timestamps, joint values), so nothing absurd but finite reaches the numerics.  At most
     MAX_LISTED_ERRORS errors are kept; `total` counts them all."""
+    if instrument is not None and instrument not in INSTRUMENTS:
+        raise MeasurementError([{"row": None, "column": None, "value": str(instrument)[:100],
+                                 "message": f"unknown instrument: one of {', '.join(INSTRUMENTS)}"}])
     text = _decode(data)
     lines, commented = [], []
     for k, ln in enumerate(text.splitlines()):
@@ -281,7 +299,7 @@ def parse_measurements(data: bytes | str, model: RobotModel) -> Measurements:
     return Measurements(
         joints=joints, points=points, point_ids=ids, timestamp=stamps,
         temperature=values.get("temperature"), payload=values.get("payload"),
-        sigma=values["sigma"] * ls if "sigma" in values else None,
+        sigma=values["sigma"] * ls if "sigma" in values else None, instrument=instrument,
     )
 
 

@@ -15,9 +15,11 @@ from scipy.spatial.transform import Rotation
 
 from . import kinematics as K
 from .identifiability import analyse
-from .identify import tracker_sigma_mm
+from .instruments import INSTRUMENTS
 from .io import Measurements
 from .model import RobotModel
+
+tracker_sigma_mm = INSTRUMENTS["laser_tracker"].sigma_mm
 
 LENGTH_ERROR_MM = 10.0
 ANGLE_ERROR_RAD = 0.008

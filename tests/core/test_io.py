@@ -188,3 +188,34 @@ def test_error_lists_are_bounded_and_counted():
 
 def test_nul_anywhere_is_binary():
     assert "binary" in _errors((HEADER + "\n" + ROW + "\n" + " " * 70_000 + "\x00").encode())[0]["message"]
+
+
+def test_instrument_preset_sets_the_noise_and_the_answer_names_it():
+    """Without a sigma column the named preset weights the fit and the floor; a sigma column wins; unknown names
+    are refused naming the choices."""
+    from calib_core.diagnose import noise_floor_mm
+    from calib_core.instruments import INSTRUMENTS
+    from calib_core.io import MeasurementError, parse_measurements, write_measurements
+    from calib_core.model import parse_model
+    from calib_core.robots import arm6
+    from calib_core.twin import Twin
+
+    model = parse_model(arm6())
+    meas = Twin(model, 0).measure(n=20)
+    text = write_measurements(meas, model)
+    floors = {}
+    for name, inst in INSTRUMENTS.items():
+        m = parse_measurements(text, model, instrument=name)
+        assert np.allclose(m.noise_sigma_mm(), inst.sigma_mm(m.points))
+        assert name in m.noise_source() and m.subset([0, 1]).instrument == name
+        floors[name], note, _ = noise_floor_mm(m, m.noise_sigma_mm())
+        assert name in note
+    assert floors["laser_tracker"] < floors["optical"] < floors["motion_capture"] < floors["total_station"]
+    default = parse_measurements(text, model)
+    assert "assumed" in default.noise_source() and np.allclose(default.noise_sigma_mm(),
+                                                                INSTRUMENTS["laser_tracker"].sigma_mm(default.points))
+    meas.sigma = np.full(meas.n_poses, 0.05)
+    given = parse_measurements(write_measurements(meas, model), model, instrument="total_station")
+    assert np.allclose(given.noise_sigma_mm(), 0.05) and "sigma column" in given.noise_source()
+    with pytest.raises(MeasurementError, match="unknown instrument"):
+        parse_measurements(text, model, instrument="ruler")
