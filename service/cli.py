@@ -1,4 +1,4 @@
-"""`calib serve | worker | db upgrade | demo` (contract section 4)."""
+"""`calib serve | worker | db upgrade | demo` (contract section 4), `import-urdf | export-urdf` (section 5)."""
 from __future__ import annotations
 
 import argparse
@@ -104,6 +104,69 @@ def cmd_convert_dataset(args) -> int:
     return 0
 
 
+def cmd_import_urdf(args) -> int:
+    """A URDF chain as contract model JSON (contract section 5)."""
+    import json
+
+    from calib_core.urdf import UrdfError, parse_urdf
+
+    try:
+        text = Path(args.file).read_bytes()
+        doc = parse_urdf(text, args.base, args.target, length_unit=args.length_unit, angle_unit=args.angle_unit)
+    except OSError as exc:
+        print(f"calib import-urdf: {exc}", file=sys.stderr)
+        return 2
+    except UrdfError as exc:
+        for e in exc.errors:
+            print(f"calib import-urdf: {args.file}: {e['field']}: {e['message']} (value: {e['value']!r})",
+                  file=sys.stderr)
+        return 1
+    out = json.dumps(doc, indent=2) + "\n"
+    if args.output:
+        Path(args.output).write_text(out)
+        ext = doc["urdf"]
+        print(f"{args.output}: {len(doc['joints'])} joints ({', '.join(j['name'] for j in doc['joints'])}), "
+              f"{ext['base_link']} -> {ext['target_link']}, units {doc['units']['length']}/{doc['units']['angle']}")
+    else:
+        sys.stdout.write(out)
+    return 0
+
+
+def cmd_export_urdf(args) -> int:
+    """A model JSON, `GET /calibrations/{id}/model` or a calibration answer (`GET /calibrations/{id}`) as URDF."""
+    import json
+
+    from calib_core.model import ModelError
+    from calib_core.urdf import to_urdf
+
+    try:
+        doc = json.loads(Path(args.file).read_text())
+    except (OSError, ValueError) as exc:
+        print(f"calib export-urdf: {args.file}: {exc}", file=sys.stderr)
+        return 2
+    if isinstance(doc, dict) and isinstance(doc.get("calibrated_model"), dict):  # a calibration answer
+        findings = (doc.get("diagnosis") or {}).get("findings") or []
+        model = {**doc["calibrated_model"], "calibration": {"effects": [
+            {"kind": f.get("kind"), "joints": f.get("joints") or []} for f in findings
+            if f.get("kind") != "unexplained" and f.get("kind") in (doc.get("model") or [])]}}
+    else:
+        model = doc
+    try:
+        text = to_urdf(model, args.name)
+    except ModelError as exc:
+        for e in exc.errors:
+            print(f"calib export-urdf: {args.file}: {e['field']}: {e['message']}", file=sys.stderr)
+        return 1
+    except (TypeError, ValueError, KeyError, AttributeError) as exc:
+        print(f"calib export-urdf: {args.file}: not a contract model or calibration ({exc})", file=sys.stderr)
+        return 1
+    if args.output:
+        Path(args.output).write_text(text)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="calib", description="Robot calibration service")
     p.add_argument("--log-level", default="INFO")
@@ -140,6 +203,21 @@ def main(argv: list[str] | None = None) -> int:
     cv.add_argument("name", choices=["motoman_leica", "iiwa7_payload", "agile_justin_right", "agile_justin_left"])
     cv.add_argument("outdir")
     cv.set_defaults(fn=cmd_convert_dataset)
+    iu = sub.add_parser("import-urdf", help="a URDF chain as contract model JSON (revolute, continuous, prismatic, "
+                        "fixed joints; inertials as masses)")
+    iu.add_argument("file", metavar="FILE")
+    iu.add_argument("--base", metavar="LINK", help="the chain's base link (default: the URDF's root link)")
+    iu.add_argument("--target", metavar="LINK", help="the measured point's link (default: the only leaf link)")
+    iu.add_argument("--length-unit", choices=["m", "mm"], default="m", help="the model's length unit (default m)")
+    iu.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="the model's angle unit (default rad)")
+    iu.add_argument("-o", "--output", metavar="MODEL.json", help="write here (default: standard output)")
+    iu.set_defaults(fn=cmd_import_urdf)
+    eu = sub.add_parser("export-urdf", help="a model or calibration JSON as URDF (identified geometry in the joint "
+                        "origins; effects a URDF cannot hold listed in a comment)")
+    eu.add_argument("file", metavar="CALIBRATION_OR_MODEL.json")
+    eu.add_argument("--name", help="the URDF robot name (default: the model's)")
+    eu.add_argument("-o", "--output", metavar="OUT.urdf", help="write here (default: standard output)")
+    eu.set_defaults(fn=cmd_export_urdf)
     args = p.parse_args(argv)
     _logging(args.log_level)
     return args.fn(args)

@@ -30,7 +30,7 @@ class Settings:
     job_timeout_s: float = 600.0  # CALIB_JOB_TIMEOUT_S: a job running longer (summed over attempts) fails, its process killed
     progress_seconds: float = 0.5  # CALIB_PROGRESS_SECONDS: a running job's progress row is written this often
     warm_pool: bool = True  # CALIB_WARM_POOL: start the job processes (imports, one tiny calibration) before serving
-    warmup_timeout_s: float = 60.0  # CALIB_WARMUP_TIMEOUT_S: `calib serve` waits at most this long for a warm pool
+    warmup_timeout_s: float = 30.0  # CALIB_WARMUP_TIMEOUT_S: `calib serve` waits at most this long for a warm pool
     test_poison: bool = False  # CALIB_TEST_POISON: tests only, CSV comment markers make a job crash or spin (runner.py)
     extra: dict = field(default_factory=dict)
 
@@ -53,7 +53,7 @@ class Settings:
             job_timeout_s=max(0.1, _float("CALIB_JOB_TIMEOUT_S", 600.0)),
             progress_seconds=min(1.0, max(0.05, _float("CALIB_PROGRESS_SECONDS", 0.5))),
             warm_pool=os.environ.get("CALIB_WARM_POOL", "1").lower() not in ("0", "false", "no"),
-            warmup_timeout_s=_float("CALIB_WARMUP_TIMEOUT_S", 60.0),
+            warmup_timeout_s=_float("CALIB_WARMUP_TIMEOUT_S", 30.0),
             test_poison=os.environ.get("CALIB_TEST_POISON", "").lower() in ("1", "true", "yes"),
         )
 

@@ -3,6 +3,7 @@ from .calibrations.models import Calibration
 from .db import Base
 from .jobs.models import Job
 from .measurements.models import MeasurementSet
+from .report.models import CalibrationPlot
 from .robots.models import Robot
 
-__all__ = ["Base", "Calibration", "Job", "MeasurementSet", "Robot"]
+__all__ = ["Base", "Calibration", "CalibrationPlot", "Job", "MeasurementSet", "Robot"]

@@ -1,6 +1,7 @@
 """RFC 9457 problem documents: every error the API returns is application/problem+json."""
 from __future__ import annotations
 
+import json
 import logging
 import math
 from http import HTTPStatus
@@ -85,36 +86,102 @@ def problem_openapi(app: FastAPI) -> None:
     app.openapi = openapi
 
 
-def json_safe(v: Any) -> Any:
-    """Echoed input may hold NaN, inf or bytes, which JSON cannot carry: make it printable."""
+MAX_ERRORS = 50
+"""A problem document lists at most this many errors; `error_count` gives the total, `errors_truncated` says so."""
+MAX_VALUE_CHARS = 200
+"""Echoed input (a value, a column name, a message) is cut to about this many characters."""
+MAX_MESSAGE_CHARS = 1000
+"""A message or detail (the service's own words, which may quote input) is cut to this many characters."""
+MAX_VALUE_DEPTH = 4
+MAX_VALUE_ITEMS = 10
+
+
+def json_safe(v: Any, limit: int = MAX_VALUE_CHARS) -> Any:
+    """Echoed input may hold NaN, inf, bytes, huge strings or deep nesting, which a response must not carry
+    as is: make it printable and bounded (about `limit` characters per value, a few levels deep)."""
+    return _bounded(v, 0, [limit])
+
+
+def _bounded(v: Any, depth: int, budget: list[int]) -> Any:
+    """v made JSON-safe within budget[0] characters (shared by everything inside one value)."""
     if isinstance(v, float) and not math.isfinite(v):
-        return str(v)
-    if isinstance(v, (bytes, bytearray)):
-        return repr(bytes(v[:64]))
-    if isinstance(v, dict):
-        return {str(k): json_safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [json_safe(x) for x in v]
-    if v is None or isinstance(v, (str, int, float, bool)):
+        v = str(v)
+    elif isinstance(v, (bytes, bytearray)):
+        v = repr(bytes(v[:64]))
+    if isinstance(v, str):
+        room = max(budget[0], 16)
+        budget[0] -= min(len(v), room)
+        return v if len(v) <= room else v[:room] + f"... ({len(v)} characters)"
+    if v is None or isinstance(v, (int, float, bool)):
+        budget[0] -= 8
         return v
-    return str(v)
+    if isinstance(v, (dict, list, tuple)):
+        n = len(v)
+        if depth >= MAX_VALUE_DEPTH or budget[0] <= 0:
+            return f"({'an object' if isinstance(v, dict) else 'a list'} of {n} item{'s' * (n != 1)}, not shown)"
+        items = list(v.items())[:MAX_VALUE_ITEMS] if isinstance(v, dict) else list(v[:MAX_VALUE_ITEMS])
+        out: Any = {} if isinstance(v, dict) else []
+        shown = 0
+        for item in items:
+            if budget[0] <= 0:
+                break
+            if isinstance(v, dict):
+                k, x = item
+                key = str(k)[:64]
+                budget[0] -= len(key)
+                out[key] = _bounded(x, depth + 1, budget)
+            else:
+                out.append(_bounded(item, depth + 1, budget))
+            shown += 1
+        if n > shown:
+            if isinstance(out, dict):
+                out["..."] = f"{n - shown} more"
+            else:
+                out.append(f"... {n - shown} more")
+        return out
+    return _bounded(str(v), depth, budget)
+
+
+def cap_errors(errors: list | None, total: int | None = None) -> tuple[list | None, dict]:
+    """At most MAX_ERRORS bounded errors, and the fields that say how many there were."""
+    if errors is None:
+        return None, {}
+    total = len(errors) if total is None else max(total, len(errors))
+    shown = []
+    for e in errors[:MAX_ERRORS]:
+        shown.append({str(k)[:64]: json_safe(x, MAX_MESSAGE_CHARS if k == "message" else MAX_VALUE_CHARS)
+                      for k, x in e.items()} if isinstance(e, dict) else json_safe(e))
+    return shown, {"error_count": total, "errors_truncated": total > len(shown)}
 
 
 def problem_response(request: Request | None, status: int, detail: str | None, *, kind: str | None = None,
                      title: str | None = None, errors: list | None = None, headers: dict | None = None,
-                     **extra: Any) -> JSONResponse:
+                     error_count: int | None = None, **extra: Any) -> JSONResponse:
+    """`errors` is capped at MAX_ERRORS entries of bounded size; `error_count` (the total, default the length
+    of `errors`) and `errors_truncated` are added whenever errors are given."""
     body: dict[str, Any] = {
         "type": TYPE_BASE + kind if kind else "about:blank",
         "title": title or HTTPStatus(status).phrase,
         "status": status,
-        "detail": detail,
+        "detail": None if detail is None else json_safe(str(detail), MAX_MESSAGE_CHARS),
     }
     if request is not None:
-        body["instance"] = request.url.path
-    if errors is not None:
-        body["errors"] = json_safe(errors)
-    body.update(json_safe(extra))
+        body["instance"] = json_safe(request.url.path)
+    shown, counts = cap_errors(errors, error_count)
+    if shown is not None:
+        body["errors"] = shown
+    body.update({str(k): json_safe(v, MAX_MESSAGE_CHARS) for k, v in extra.items()})
+    body.update(counts)
     return JSONResponse(body, status_code=status, media_type=PROBLEM, headers=headers)
+
+
+def _plain(e: dict) -> str:
+    """pydantic's message in plain words (JSON decoding errors name the position, not Python internals)."""
+    msg = str(e.get("msg", "invalid"))
+    if e.get("type") == "json_invalid":
+        ctx = e.get("ctx") or {}
+        return f"the body is not valid JSON ({ctx.get('error', 'syntax error')})"
+    return msg
 
 
 def _loc(loc) -> str:
@@ -136,11 +203,13 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
-        errors = [{"field": _loc(e.get("loc", ())), "value": e.get("input"), "message": e.get("msg", "invalid")}
-                  for e in exc.errors()]
-        n = len(errors)
-        return problem_response(request, 422, f"the request has {n} invalid field{'s' * (n != 1)}",
-                                kind="validation", errors=errors)
+        raw = exc.errors()
+        n = len(raw)
+        errors = [{"field": _loc(e.get("loc", ())), "value": e.get("input"), "message": _plain(e)}
+                  for e in raw[:MAX_ERRORS]]
+        more = f" (the first {MAX_ERRORS} are listed)" if n > MAX_ERRORS else ""
+        return problem_response(request, 422, f"the request has {n} invalid field{'s' * (n != 1)}{more}",
+                                kind="validation", errors=errors, error_count=n)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
@@ -155,6 +224,8 @@ def install(app: FastAPI) -> None:
 
 def get_or_404(s, model_cls, key: str, what: str):
     """The row of model_cls with primary key `key`, or a 404 problem naming `what`."""
+    if not isinstance(key, str) or len(key) > 64 or "\x00" in key:  # ids are 36-character UUIDs
+        raise not_found(what, key[:64] + "..." if isinstance(key, str) and len(key) > 64 else key)
     row = s.get(model_cls, key)
     if row is None:
         raise not_found(what, key)

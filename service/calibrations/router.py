@@ -44,6 +44,27 @@ def get_plot(calibration_id: str, name: str = Path(..., description="`errors`, `
     return Response(png, media_type="image/png", headers={"Cache-Control": "public, max-age=86400"})
 
 
+@router.get("/calibrations/{calibration_id}/model", responses=problem_responses(404),
+            summary="The calibrated model as contract model JSON (contract section 5)")
+def get_calibrated_model(calibration_id: str, s: Session = Depends(get_read_session, scope="function")) -> dict:
+    """The robot's model with the identified geometry (MD-H rows) and tool point, in the model's units; a
+    `calibration` object lists the identified effects the rows cannot hold and the identified base pose.
+    It can be posted to `POST /robots` as it is."""
+    return service.calibrated_model(s, service.get_calibration(s, calibration_id))
+
+
+@router.get("/calibrations/{calibration_id}/urdf", response_class=Response,
+            responses={200: {"description": "the URDF", "content": {"application/xml": {
+                "schema": {"type": "string"}, "example": '<?xml version="1.0"?>\n<robot name="spray7">...'}}},
+                **problem_responses(404)},
+            summary="The calibrated model as URDF (contract section 5)")
+def get_calibrated_urdf(calibration_id: str, s: Session = Depends(get_read_session, scope="function")) -> Response:
+    """Each identified MD-H row is a joint origin (axis `0 0 1`); effects a URDF cannot hold are listed in a
+    comment. A model imported from a URDF keeps its base and target link names and frames."""
+    text = service.calibrated_urdf(s, service.get_calibration(s, calibration_id))
+    return Response(text, media_type="application/xml")
+
+
 @router.post("/calibrations/{calibration_id}/predict", response_model=PredictOut,
              dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422),
              summary="Where the calibrated robot puts the measured point")

@@ -4,8 +4,13 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
+"""A JSON number, finite; strict: the string "1" is not a number."""
 MAX_POSES = 100_000
+MAX_ROW = 256
+"""At most this many values in one row of joints (a robot has a handful of joints)."""
+Row = Annotated[list[Finite], Field(max_length=MAX_ROW)]
+PerPose = Annotated[list[Finite], Field(max_length=MAX_POSES)]
 
 
 class PlotRef(BaseModel):
@@ -49,11 +54,12 @@ class CalibrationOut(BaseModel):
 class PredictIn(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}]})
-    joints: list[list[Finite]] = Field(min_length=1, max_length=MAX_POSES,
+    joints: list[Row] = Field(min_length=1, max_length=MAX_POSES,
                                        description="N poses x n joints, model units, model joint order")
-    payload: Finite | list[Finite] | None = Field(None, description="kg at the tool, one value or one per pose; "
-                                                  "used only by calibrations that identified load effects")
-    temperature: Finite | list[Finite] | None = Field(None, description="deg C, one value or one per pose; used "
+    payload: Finite | PerPose | None = Field(None, description="kg at the tool (0 to 10000), one value or one "
+                                             "per pose; used only by calibrations that identified load effects")
+    temperature: Finite | PerPose | None = Field(None,
+                                                 description="deg C (-60 to 200), one value or one per pose; used "
                                                       "only by a calibration that identified thermal drift "
                                                       "(absent: the calibration's mean temperature)")
     timestamp: str | list[str] | None = Field(None, description="ISO 8601, one or one per pose; used only by a "
@@ -71,17 +77,17 @@ class CompensateIn(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"targets": [[-2821.34, 876.61, -16.36]], "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]},
         {"program_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]], "locked_joints": ["J6"]}]})
-    targets: list[list[Finite]] | None = Field(None, max_length=MAX_POSES,
+    targets: list[Row] | None = Field(None, max_length=MAX_POSES,
                                                description="N x 3 points in the measurement frame, model length unit")
-    seed_joints: list[list[Finite]] | None = Field(None, max_length=MAX_POSES,
+    seed_joints: list[Row] | None = Field(None, max_length=MAX_POSES,
                                                    description="N x n joints the program would use (the nominal "
                                                                "solution), model units: the answer stays nearest them")
-    program_joints: list[list[Finite]] | None = Field(
+    program_joints: list[Row] | None = Field(
         None, max_length=MAX_POSES, description="instead of targets: a program as joints only; the answer makes the "
         "real robot reach where the nominal model puts the tool (nominal model in the calibrated base frame)")
-    locked_joints: list[str] = Field(default_factory=list, description="joint names held at the seed (for a "
+    locked_joints: list[str] = Field(default_factory=list, max_length=MAX_ROW, description="joint names held at the seed (for a "
                                      "redundant robot, e.g. the telescopic J6 of the spray robot)")
-    payload: Finite | None = Field(None, description="kg at the tool during the program")
+    payload: Finite | None = Field(None, description="kg at the tool during the program (0 to 10000)")
 
 
 class CompensateOut(BaseModel):

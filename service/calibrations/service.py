@@ -4,16 +4,19 @@ from __future__ import annotations
 from datetime import datetime, timezone
 
 import numpy as np
-from sqlalchemy.orm import Session
+from sqlalchemy import select
+from sqlalchemy.orm import Session, object_session
 
 from calib_core.compensate import compensate as solve_compensation
 from calib_core.compensate import nominal_to_calibrated
 from calib_core.identify import CalibratedRobot
 from calib_core.io import Measurements
-from calib_core.model import LENGTH_TO_MM
+from calib_core.model import (ANGLE_TO_RAD, JOINT_MARGIN_FRACTION, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM,
+                               MAX_REVOLUTE_DEG, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC)
 
-from ..problems import ProblemError, get_or_404
+from ..problems import MAX_ERRORS, ProblemError, get_or_404
 from ..report import decorate
+from ..report.models import CalibrationPlot
 from ..robots.models import Robot
 from ..robots.schemas import iso
 from ..robots.service import model_of
@@ -35,23 +38,119 @@ def answer(c: Calibration) -> dict:
 
 
 def report(c: Calibration, inline: bool = False) -> str:
-    """The HTML report of the stored answer (the same dict `GET /calibrations/{id}` returns)."""
+    """The HTML report of the stored answer (the same dict `GET /calibrations/{id}` returns); with `inline`, the
+    plots its job drew and stored, embedded (one query for all of them)."""
     from ..report import html as report_html
 
     a = answer(c)
-    return report_html.render(a, (lambda name: plot_png(c, name, a)) if inline else None)
+    if not inline:
+        return report_html.render(a, None)
+    stored = _stored_plots(c)
+    return report_html.render(a, lambda name: stored[name] if name in stored else plot_png(c, name, a))
+
+
+def _stored_plots(c: Calibration, name: str | None = None) -> dict[str, bytes]:
+    s = object_session(c)
+    if s is None:
+        return {}
+    q = select(CalibrationPlot.name, CalibrationPlot.png).where(CalibrationPlot.calibration_id == c.id)
+    if name is not None:
+        q = q.where(CalibrationPlot.name == name)
+    return {n: bytes(png) for n, png in s.execute(q)}
 
 
 def plot_png(c: Calibration, name: str, a: dict | None = None) -> bytes:
-    from ..report import plots as report_plots
+    """A plot of the calibration: the PNG its job drew when it finished and stored (`calibration_plots`).
+    Only a calibration stored before plots were (migration 0002) has its plots drawn here, once per process."""
+    from ..report.figures import plot_list
 
     a = a if a is not None else answer(c)
-    try:
-        return report_plots.png(a, name, cache_key=c.id)
-    except report_plots.UnknownPlot:
+    if name not in {p["name"] for p in plot_list(a)}:
         have = ", ".join(p["name"] for p in a["plots"]) or "none (plots come with the auto model's diagnosis)"
-        raise ProblemError(404, f"calibration {c.id!r} has no plot {name!r}; it has: {have}",
-                           kind="not-found") from None
+        raise ProblemError(404, f"calibration {c.id!r} has no plot {name!r}; it has: {have}", kind="not-found")
+    stored = _stored_plots(c, name)
+    if name in stored:
+        return stored[name]
+    from ..report import plots as report_plots  # an old calibration: matplotlib here, once (cached)
+
+    return report_plots.png(a, name, cache_key=c.id)
+
+
+def calibrated_model(s: Session, c: Calibration) -> dict:
+    """The calibrated model as contract JSON (identified geometry and tool point, model units), with the stored
+    model's URDF extension and a `calibration` object (effects the rows cannot hold, base pose)."""
+    from calib_core.urdf import calibrated_model_dict
+
+    r = s.get(Robot, c.robot_id)
+    doc = calibrated_model_dict(model_of(r), c.robot_state, r.model_json)
+    doc["calibration"]["id"] = c.id
+    return doc
+
+
+def calibrated_urdf(s: Session, c: Calibration) -> str:
+    """The calibrated model as URDF: the identified geometry in the joint origins, effects in a comment."""
+    from calib_core.urdf import to_urdf
+
+    return to_urdf(calibrated_model(s, c))
+
+
+def _joint_range_problems(model, rows, field: str, errors: list) -> int:
+    """Joint values far outside the limits (JOINT_MARGIN_FRACTION of the range beyond them; revolute joints
+    without limits: MAX_REVOLUTE_DEG) as errors naming field[i][j] and the accepted range (at most MAX_ERRORS
+    listed); returns how many more there are than listed."""
+    n = model.n_joints
+    if not rows or any(len(r) != n for r in rows):
+        return 0
+    q = np.asarray(rows, float)
+    js = model.joint_scale()
+    lo, hi = model.limits[:, 0] / js, model.limits[:, 1] / js
+    rev = MAX_REVOLUTE_DEG * ANGLE_TO_RAD["deg"] / ANGLE_TO_RAD[model.angle_unit]
+    span = hi - lo
+    margin = JOINT_MARGIN_FRACTION * np.where(np.isfinite(span), span, 0.0)
+    a_lo = np.where(model.prismatic, lo - margin, np.maximum(lo - margin, -rev))
+    a_hi = np.where(model.prismatic, hi + margin, np.minimum(hi + margin, rev))
+    bad = (q < a_lo) | (q > a_hi)
+    count = int(bad.sum())
+    for i, j in np.argwhere(bad)[:MAX_ERRORS]:
+        errors.append({"field": f"body.{field}[{i}][{j}]", "value": float(q[i, j]),
+                       "message": f"{model.joint_names[j]} = {q[i, j]:g} {model.joint_unit(j)} is far outside its "
+                                  f"limits [{lo[j]:g}, {hi[j]:g}]; accepted: {a_lo[j]:g} to {a_hi[j]:g} "
+                                  f"{model.joint_unit(j)} (the limits widened by "
+                                  f"{JOINT_MARGIN_FRACTION:.0%} of the range)"})
+    return max(0, count - MAX_ERRORS)
+
+
+def _range_problems(name: str, v, lo: float, hi: float, unit: str, errors: list) -> int:
+    """One value or a list of values outside [lo, hi], as errors naming body.name[i]; returns how many more
+    there are than listed."""
+    if v is None:
+        return 0
+    vals = np.atleast_1d(np.asarray(v, float))
+    bad = np.flatnonzero((vals < lo) | (vals > hi))
+    for i in bad[:MAX_ERRORS]:
+        errors.append({"field": f"body.{name}" + (f"[{i}]" if isinstance(v, list) else ""),
+                       "value": float(vals[i]), "message": f"{name} must be between {lo:g} and {hi:g} {unit}"})
+    return max(0, len(bad) - MAX_ERRORS)
+
+
+def _point_problems(targets, unit: str, errors: list) -> int:
+    if not targets or any(len(t) != 3 for t in targets):
+        return 0
+    t = np.asarray(targets, float)
+    bound = MAX_POINT_MM / LENGTH_TO_MM[unit]
+    bad = np.abs(t) > bound
+    for i, k in np.argwhere(bad)[:MAX_ERRORS]:
+        errors.append({"field": f"body.targets[{i}][{k}]", "value": float(t[i, k]),
+                       "message": f"implausible target: |{'xyz'[k]}| must be at most {bound:g} {unit} "
+                                  f"({MAX_POINT_MM / 1000:g} m from the tracker origin)"})
+    return max(0, int(bad.sum()) - MAX_ERRORS)
+
+
+def _reject(detail: str, errors: list, hidden: int = 0):
+    """A 422 listing the errors (the problem document shows the first MAX_ERRORS) with their total count."""
+    if errors:
+        raise ProblemError(422, detail, kind="validation", errors=errors[:MAX_ERRORS],
+                           error_count=len(errors) + hidden)
 
 
 def _per_pose(name: str, v, n: int, errors: list) -> np.ndarray | None:
@@ -70,12 +169,16 @@ def _epoch(stamps, errors: list):
     for i, t in enumerate(stamps if isinstance(stamps, list) else [stamps]):
         try:
             d = datetime.fromisoformat(t.replace("Z", "+00:00"))
-        except ValueError:
+            e = (d if d.tzinfo else d.replace(tzinfo=timezone.utc)).timestamp()
+        except (ValueError, OverflowError):
             errors.append({"field": f"body.timestamp[{i}]", "value": t,
                            "message": "not an ISO 8601 timestamp (e.g. 2026-11-03T08:00:19+00:00)"})
             out.append(float("nan"))
             continue
-        out.append((d if d.tzinfo else d.replace(tzinfo=timezone.utc)).timestamp())
+        if not TIMESTAMP_RANGE_S[0] <= e < TIMESTAMP_RANGE_S[1]:
+            errors.append({"field": f"body.timestamp[{i}]", "value": t, "message": f"timestamp outside "
+                           f"{TIMESTAMP_RANGE_UTC[0][:10]} .. {TIMESTAMP_RANGE_UTC[1][:10]} (UTC)"})
+        out.append(e)
     return out if isinstance(stamps, list) else (out[0] if out else None)
 
 
@@ -89,8 +192,10 @@ def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temp
         errors.append({"field": "body.payload", "value": len(payload), "message": "one payload per pose, or one number"})
     temp = _per_pose("temperature", temperature, len(joints), errors)
     stamps = _per_pose("timestamp", _epoch(timestamp, errors), len(joints), errors)
-    if errors:
-        raise ProblemError(422, "the joints do not fit the robot model", kind="validation", errors=errors[:1000])
+    more = _joint_range_problems(model, joints, "joints", errors)
+    more += _range_problems("payload", payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
+    more += _range_problems("temperature", temperature, *TEMPERATURE_RANGE_C, "deg C", errors)
+    _reject("the joints do not fit the robot model", errors, more)
     q = np.asarray(joints, float) * model.joint_scale()
     robot = CalibratedRobot.from_state(model, c.robot_state)
     load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (len(q),)).copy()
@@ -122,8 +227,11 @@ def compensate(s: Session, c: Calibration, body) -> dict:
                            "message": f"one seed per target ({len(body.targets)})"})
     errors += [{"field": "body.locked_joints", "value": j, "message": f"unknown joint; the model has "
                 f"{', '.join(model.joint_names)}"} for j in body.locked_joints if j not in model.joint_names]
-    if errors:
-        raise ProblemError(422, "the request does not fit the robot model", kind="validation", errors=errors[:1000])
+    more = _joint_range_problems(model, rows, "program_joints" if program else "seed_joints", errors)
+    if not program:
+        more += _point_problems(body.targets, model.length_unit, errors)
+    more += _range_problems("payload", body.payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
+    _reject("the request does not fit the robot model", errors, more)
     q = np.asarray(rows, float).reshape(-1, n) * model.joint_scale()
     robot = CalibratedRobot.from_state(model, c.robot_state)
     columns = Measurements(joints=q, points=np.zeros((len(q), 3)),

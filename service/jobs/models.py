@@ -1,11 +1,13 @@
 from __future__ import annotations
 
-from sqlalchemy import Float, ForeignKey, Integer, String, Text
+from sqlalchemy import Float, ForeignKey, Index, Integer, String, Text
 from sqlalchemy.orm import Mapped, mapped_column
 
 from ..db import Base, new_id, now
 
 QUEUED, RUNNING, SUCCEEDED, FAILED = "queued", "running", "succeeded", "failed"
+CANCELLED = "cancelled"
+FINISHED = (SUCCEEDED, FAILED, CANCELLED)
 
 
 class Job(Base):
@@ -27,3 +29,9 @@ class Job(Base):
     created_at: Mapped[float] = mapped_column(Float, default=now, index=True)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
+    # seconds the job has run, summed over its attempts (a graceful restart gives the attempt back, not the time):
+    # CALIB_JOB_TIMEOUT_S bounds this sum
+    run_seconds: Mapped[float] = mapped_column(Float, default=0.0, server_default="0")
+
+    # the claim order (migration 0002): queued jobs in creation order, available_at read from the index
+    __table_args__ = (Index("ix_jobs_claim", "status", "created_at", "id", "available_at"),)

@@ -29,3 +29,23 @@ def create_job(response: Response, body: JobIn = Body(..., openapi_examples={
             summary="A job's status and progress")
 def get_job(job_id: str, s: Session = Depends(get_read_session, scope="function")) -> JobOut:
     return JobOut.of(service.get_job(s, job_id))
+
+
+_CANCEL_DOC = """A queued job is cancelled at once and never runs; a running job is cancelled at once (no result will
+be stored) and its worker stops its process within a moment (`message` then says so). Cancelling a cancelled
+job again answers it unchanged; a job that already succeeded or failed is a 409."""
+
+
+@router.post("/jobs/{job_id}/cancel", response_model=JobOut, dependencies=[Depends(require_writer)],
+             responses=problem_responses(401, 404, 409), summary="Cancel a queued or running job",
+             description=_CANCEL_DOC)
+def cancel_job(job_id: str, s: Session = Depends(get_session, scope="function")) -> JobOut:
+    return JobOut.of(service.cancel(s, job_id))
+
+
+@router.delete("/jobs/{job_id}", response_model=JobOut, dependencies=[Depends(require_writer)],
+               responses=problem_responses(401, 404, 409),
+               summary="Cancel a queued or running job (same as POST /jobs/{id}/cancel; the record stays)",
+               description=_CANCEL_DOC)
+def delete_job(job_id: str, s: Session = Depends(get_session, scope="function")) -> JobOut:
+    return JobOut.of(service.cancel(s, job_id))

@@ -1,11 +1,15 @@
-"""Jobs: the row is written in the same transaction that answers 202; workers pick it up from the database."""
+"""Jobs: the row is written in the same transaction that answers 202; workers pick it up from the database
+(woken at commit: queue/notify.py). Cancelling is a status change in one transaction; the worker running a
+cancelled job stops its process."""
 from __future__ import annotations
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from ..measurements.service import get_measurement_set
-from ..problems import ProblemError, get_or_404
-from .models import Job
+from ..problems import ProblemError, get_or_404, not_found
+from ..queue import notify, store
+from .models import CANCELLED, QUEUED, RUNNING, Job
 
 
 def enqueue(s: Session, measurement_set_id: str, mode: str, max_attempts: int) -> Job:
@@ -18,8 +22,26 @@ def enqueue(s: Session, measurement_set_id: str, mode: str, max_attempts: int) -
     j = Job(measurement_set_id=measurement_set_id, mode=mode, max_attempts=max_attempts, message="queued")
     s.add(j)
     s.flush()
+    notify.wake_after_commit(s, "queued")
     return j
 
 
 def get_job(s: Session, job_id: str) -> Job:
     return get_or_404(s, Job, job_id, "job")
+
+
+def cancel(s: Session, job_id: str) -> Job:
+    """queued -> cancelled (never claimed after the commit); running -> cancelled, its process stopped by its
+    worker within a moment; cancelled -> unchanged (idempotent); succeeded or failed -> 409."""
+    j = s.scalars(select(Job).where(Job.id == job_id).with_for_update()).first()
+    if j is None:
+        raise not_found("job", job_id)
+    if j.status == CANCELLED:
+        return j
+    if j.status not in (QUEUED, RUNNING):
+        raise ProblemError(409, f"job {job_id!r} already {j.status}; only a queued or running job can be cancelled",
+                           kind="conflict", job_status=j.status)
+    store.cancel(s, j)
+    s.flush()
+    notify.wake_after_commit(s, "cancel")
+    return j

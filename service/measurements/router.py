@@ -1,6 +1,6 @@
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, File, Query, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Query, Request, Response, UploadFile
 from sqlalchemy.orm import Session
 
 from ..db import Database
@@ -16,8 +16,20 @@ CSV_EXAMPLE = ("point,J1,J2,J3,J4,J5,J6,J7,x,y,z,timestamp\n"
                "-2821.3401,876.6147,-16.3583,2026-11-03T08:00:19+00:00\n")
 
 
+async def one_file_part(request: Request) -> None:
+    """Exactly one multipart part named `file`: a second one would otherwise be silently ignored."""
+    if not request.headers.get("content-type", "").lower().startswith("multipart/"):
+        return
+    form = await request.form()  # already parsed by FastAPI for `file`; cached on the request
+    n = len(form.getlist("file"))
+    if n > 1:
+        raise ProblemError(422, f"the upload has {n} parts named 'file'; send exactly one CSV per upload",
+                           kind="invalid-csv", errors=[{"row": None, "column": None, "value": n, "field": "file",
+                                                        "message": "only one 'file' part is allowed"}])
+
+
 @router.post("/robots/{robot_id}/measurements", status_code=201, response_model=MeasurementSetOut,
-             dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422),
+             dependencies=[Depends(require_writer), Depends(one_file_part)], responses=problem_responses(401, 404, 413, 422),
              summary="Upload a measurement CSV (contract section 2, multipart field `file`)",
              openapi_extra={"requestBody": {"content": {"multipart/form-data": {
                  "schema": {"type": "object", "required": ["file"],

@@ -1,8 +1,14 @@
 """The diagnosis plots as PNG, drawn with matplotlib (Agg, object API: no pyplot state) from the stored answer.
 
-Names (see `figures.plot_list`): `errors` (held-out error per pose, geometric and final model, noise floor),
+Names (see `figures.plot_list`): `errors` (held-out error per pose, geometric and final model, noise floor;
+one bar per pose up to BARS_MAX poses, above that the poses in consecutive groups: mean and max per group),
 `distribution` (histograms of the same), `finding-k` (the k-th finding's residual against its regressor,
 with the fitted effect).
+
+They are drawn once, in the job's process when the calibration finishes (queue/runner.py), and stored
+(`calibration_plots`); the API serves the stored PNGs. Only a calibration stored before that (migration 0002)
+is drawn by the API, once per process (`png(..., cache_key=...)`). Every text that comes from the user (joint
+names, labels) goes through `_tx`, so a `$` is a dollar sign, never matplotlib mathtext.
 """
 from __future__ import annotations
 
@@ -24,9 +30,16 @@ FIT = "#c92a2a"
 SIZE = (8.0, 3.6)
 DPI = 110
 
-_lock = threading.Lock()  # matplotlib's font and text caches are not thread-safe
+_lock = threading.Lock()  # matplotlib's font and text caches are not thread-safe (API fallback for old rows only)
 _cache: OrderedDict[tuple[str, str], bytes] = OrderedDict()
 CACHE_SIZE = 64
+BARS_MAX = 300  # up to this many poses the error plot has one bar per pose
+GROUPS = 150  # above it, this many groups of consecutive poses
+
+
+def _tx(v) -> str:
+    """Text for matplotlib: a `$` is a literal dollar sign (mathtext never parses user text)."""
+    return str(v).replace("\\$", "$").replace("$", "\\$")
 
 
 class UnknownPlot(KeyError):
@@ -56,6 +69,25 @@ def png(answer: dict, name: str, cache_key: str | None = None) -> bytes:
 
 
 def _render(answer: dict, name: str) -> bytes:
+    fig = figure(answer, name)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", metadata={"Software": None})
+    return buf.getvalue()
+
+
+def error_png(name: str, why: str) -> bytes:
+    """A PNG that says a plot could not be drawn (the job's result is still stored; the report shows this)."""
+    fig = Figure(figsize=SIZE, dpi=DPI)
+    FigureCanvasAgg(fig)
+    fig.text(0.5, 0.5, _tx(f"the plot {name!r} could not be drawn:\n{why}"[:400]), ha="center", va="center",
+             wrap=True, fontsize=9, color=RESID)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", metadata={"Software": None})
+    return buf.getvalue()
+
+
+def figure(answer: dict, name: str) -> Figure:
+    """The matplotlib figure of plot `name` (not yet rendered)."""
     fig = Figure(figsize=SIZE, dpi=DPI, layout="constrained")
     FigureCanvasAgg(fig)
     d = answer.get("diagnosis") or {}
@@ -73,9 +105,7 @@ def _render(answer: dict, name: str) -> bytes:
         ax.grid(True, alpha=0.3, linewidth=0.6)
         for side in ("top", "right"):
             ax.spines[side].set_visible(False)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", metadata={"Software": None})
-    return buf.getvalue()
+    return fig
 
 
 def _arr(values) -> np.ndarray:
@@ -93,19 +123,49 @@ def _floor(ax, d: dict, horizontal: bool = True) -> None:
 def _errors(ax, answer: dict, d: dict) -> None:
     pp = d["per_pose"]
     geo, fin = _arr(pp["geometric_holdout_mm"]), _arr(pp["final_holdout_mm"])
-    x = np.arange(1, len(geo) + 1)
+    n = len(geo)
     same = list(answer.get("model") or []) == ["geometric"]
-    ax.bar(x, geo, width=1.0, color=GEO, alpha=0.55,
-           label=f"geometric model, RMS {np.sqrt(np.nanmean(geo**2)):.3f} mm")
-    if not same:
-        ax.bar(x, fin, width=0.6, color=FINAL,
-               label=f"{model_label(answer['model'])}, RMS {np.sqrt(np.nanmean(fin**2)):.3f} mm")
+    geo_label = f"geometric model, RMS {_rms(geo):.3f} mm"
+    fin_label = _tx(f"{model_label(answer['model'])}, RMS {_rms(fin):.3f} mm") if not same else ""
+    if n <= BARS_MAX:
+        x = np.arange(1, n + 1)
+        ax.bar(x, geo, width=1.0, color=GEO, alpha=0.55, label=geo_label)
+        if not same:
+            ax.bar(x, fin, width=0.6, color=FINAL, label=fin_label)
+        ax.set_xlabel("calibration pose (measurement order)")
+    else:  # thousands of poses: a bar each is unreadable and slow; groups of consecutive poses, mean and max
+        edges = np.linspace(0, n, GROUPS + 1).round().astype(int)
+        series = [(geo, GEO, 0.55, geo_label)] + ([] if same else [(fin, FINAL, 0.9, fin_label)])
+        top_all = 0.0
+        for v, color, alpha, label in series:
+            mean, top = _grouped(v, edges)
+            top_all = max(top_all, float(top.max()))
+            ax.stairs(mean, edges + 0.5, color=color, alpha=alpha, fill=True, label=f"{label}, mean of the group")
+            ax.stairs(top, edges + 0.5, color=color, alpha=0.8, linewidth=0.8)
+        ax.plot([], [], color=RESID, linewidth=0.8, label="thin lines: the largest error of the group")
+        ax.set_ylim(0.0, 1.35 * top_all if top_all > 0 else 1.0)  # room for the legend
+        ax.set_xlabel(f"calibration pose (measurement order, {GROUPS} groups of about {n / GROUPS:.0f} poses)")
     _floor(ax, d)
-    ax.set_xlim(0.5, len(geo) + 0.5)
-    ax.set_xlabel("calibration pose (measurement order)")
+    ax.set_xlim(0.5, n + 0.5)
     ax.set_ylabel("held-out error (mm)")
     ax.set_title("Error per pose, each predicted by a model fitted without it", fontsize=10)
     ax.legend(fontsize=8, loc="upper right", frameon=False)
+
+
+def _rms(v: np.ndarray) -> float:
+    ok = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(ok**2))) if len(ok) else float("nan")
+
+
+def _grouped(v: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and max of v over [edges[k], edges[k+1]) (NaN-aware; an all-NaN group is 0)."""
+    mean, top = np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)
+    for k, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+        g = v[a:b]
+        g = g[np.isfinite(g)]
+        if len(g):
+            mean[k], top[k] = g.mean(), g.max()
+    return mean, top
 
 
 def _distribution(ax, answer: dict, d: dict) -> None:
@@ -118,7 +178,7 @@ def _distribution(ax, answer: dict, d: dict) -> None:
     same = list(answer.get("model") or []) == ["geometric"]
     ax.hist(geo[np.isfinite(geo)], bins=bins, color=GEO, alpha=0.6, label="geometric model")
     if not same:
-        ax.hist(fin[np.isfinite(fin)], bins=bins, color=FINAL, alpha=0.75, label=model_label(answer["model"]))
+        ax.hist(fin[np.isfinite(fin)], bins=bins, color=FINAL, alpha=0.75, label=_tx(model_label(answer["model"])))
     _floor(ax, d, horizontal=False)
     ax.set_xlabel("held-out error per pose (mm)")
     ax.set_ylabel("poses")
@@ -133,22 +193,24 @@ def _finding(axes, f: dict, k: int) -> None:
     ax, ax2 = axes
     p = f["plot"]
     x, r, fit = _arr(p["x"]), _arr(p["residual_mm"]), _arr(p.get("fit_mm"))
-    kind = str(f.get("kind", "")).replace("_", " ")
-    ax.scatter(x, r, s=14, color=RESID, alpha=0.8, label="residual before this finding")
+    kind = _tx(str(f.get("kind", "")).replace("_", " "))
+    many = len(x) > 1000
+    ax.scatter(x, r, s=3 if many else 14, color=RESID, alpha=0.5 if many else 0.8, linewidths=0,
+               label="residual before this finding")
     has_fit = len(fit) == len(x)
     if has_fit:
-        ax.scatter(x, fit, s=8, color=FIT, label=f"fitted {kind}")
+        ax.scatter(x, fit, s=2 if many else 8, color=FIT, linewidths=0, label=f"fitted {kind}")
     ax.axhline(0.0, color="black", linewidth=0.6)
-    ax.set_xlabel(p.get("x_label") or "regressor")
+    ax.set_xlabel(_tx(p.get("x_label") or "regressor"))
     ax.set_ylabel("along the effect's direction (mm)")
-    ax.set_title(f"Finding {k}: {finding_title(f)}", fontsize=10)
-    ax.legend(fontsize=8, loc="best", frameon=False)
+    ax.set_title(_tx(f"Finding {k}: {finding_title(f)}"), fontsize=10)
+    ax.legend(fontsize=8, loc="upper left" if many else "best", frameon=False)  # "best" is O(points)
     if has_fit:
         ok = np.isfinite(r) & np.isfinite(fit)
         lo = float(min(r[ok].min(), fit[ok].min(), 0.0)) if ok.any() else 0.0
         hi = float(max(r[ok].max(), fit[ok].max())) if ok.any() else 1.0
         ax2.plot([lo, hi], [lo, hi], color=FIT, linewidth=1.2, label="residual = fit")
-        ax2.scatter(fit, r, s=10, color=RESID, alpha=0.8)
+        ax2.scatter(fit, r, s=3 if many else 10, color=RESID, alpha=0.5 if many else 0.8, linewidths=0)
         if ok.sum() > 2 and np.std(fit[ok]) > 0 and np.std(r[ok]) > 0:
             ax2.text(0.04, 0.95, f"R = {np.corrcoef(fit[ok], r[ok])[0, 1]:.2f}", transform=ax2.transAxes,
                      va="top", fontsize=9)

@@ -3,6 +3,8 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, Body, Depends, Query, Request, Response
+from fastapi.routing import APIRoute
+from starlette.routing import Match
 from sqlalchemy.orm import Session
 
 from ..deps import get_read_session, get_session, require_writer
@@ -12,6 +14,46 @@ from .schemas import SPRAY7_EXAMPLE, RobotOut
 
 router = APIRouter(tags=["robots"])
 
+XML_TYPES = (b"application/xml", b"text/xml", b"application/urdf+xml")
+
+
+class XmlBodyRoute(APIRoute):
+    """Matches only requests whose Content-Type is XML, so `POST /robots` with a URDF reaches its own handler
+    and every JSON request the contract's route below, unchanged."""
+
+    def matches(self, scope):
+        match, child = super().matches(scope)
+        if match != Match.NONE:
+            ctype = dict(scope.get("headers") or []).get(b"content-type", b"").split(b";")[0].strip().lower()
+            if ctype not in XML_TYPES:
+                return Match.NONE, {}
+        return match, child
+
+
+async def _raw_body(request: Request) -> bytes:
+    return await request.body()
+
+
+def create_robot_urdf(response: Response, body: bytes = Depends(_raw_body),
+                      base: str | None = Query(None, max_length=200, description="the chain's base link (default: "
+                                               "the URDF's root link)"),
+                      targets: str | None = Query(None, max_length=1000, description="the measured point's link "
+                                                  "(default: the only leaf link); one for now"),
+                      length_unit: str = Query("m", pattern="^(m|mm)$"),
+                      angle_unit: str = Query("rad", pattern="^(rad|deg)$"),
+                      s: Session = Depends(get_session, scope="function")) -> RobotOut:
+    """`Content-Type: application/xml`: the URDF chain from `base` to `targets` folded into MD-H rows and stored
+    as contract model JSON (with its `urdf` extension object), validated like a JSON upload."""
+    r = service.create_robot_from_urdf(s, body, base, targets, length_unit, angle_unit)
+    response.headers["Location"] = f"/robots/{r.id}"
+    return RobotOut.of(r)
+
+
+# registered before the JSON route of the same path: XmlBodyRoute lets every non-XML request through to it
+router.add_api_route("/robots", create_robot_urdf, methods=["POST"], status_code=201, response_model=RobotOut,
+                     dependencies=[Depends(require_writer)], route_class_override=XmlBodyRoute,
+                     include_in_schema=False, summary="Store a robot model given as URDF (contract section 5)")
+
 
 @router.post("/robots", status_code=201, response_model=RobotOut, dependencies=[Depends(require_writer)],
              responses=problem_responses(401, 413, 422), summary="Store a robot model (contract section 1)")
@@ -19,7 +61,9 @@ def create_robot(response: Response, doc: dict[str, Any] = Body(..., openapi_exa
         "spray7": {"summary": "7-DoF spray robot, MD-H, mm/deg", "value": SPRAY7_EXAMPLE}}),
         s: Session = Depends(get_session, scope="function")) -> RobotOut:
     """Validates the model (joint names, types, limits, units) and stores it exactly as posted.
-    Every problem is listed in the 422 problem document as `{field, value, message}`."""
+    Every problem is listed in the 422 problem document as `{field, value, message}`.
+    With `Content-Type: application/xml` the body is a URDF instead (contract section 5; `?base=LINK&targets=LINK`,
+    optional `length_unit=m|mm`, `angle_unit=rad|deg`), stored as the model JSON it converts to."""
     r = service.create_robot(s, doc)
     response.headers["Location"] = f"/robots/{r.id}"
     return RobotOut.of(r)

@@ -192,3 +192,78 @@ def test_report_prints_to_pdf(server, calibrations, tmp_path):
     assert r.returncode == 0 and pdf.exists(), r.stderr[-3000:]
     data = pdf.read_bytes()
     assert data[:5] == b"%PDF-" and len(re.findall(rb"/Type\s*/Page\b", data)) >= 2
+
+
+# --- issue 10: plots drawn once by the worker and stored; `$` in names; 10k poses ---------------------------
+
+import sqlite3  # noqa: E402
+import time  # noqa: E402
+
+from service.report import plots as report_plots  # noqa: E402
+
+
+def stored_plots(server, cal_id: str) -> dict[str, bytes]:
+    with sqlite3.connect(server.db_path) as c:
+        return dict(c.execute("SELECT name, png FROM calibration_plots WHERE calibration_id = ?", (cal_id,)))
+
+
+def test_plots_are_drawn_by_the_worker_and_stored(server, calibrations):
+    """The job stored its PNGs with its result; the API serves those bytes (it draws nothing)."""
+    a, g = calibrations["auto"], calibrations["geometric"]
+    stored = stored_plots(server, a["id"])
+    assert sorted(stored) == sorted(p["name"] for p in a["plots"]) == ["distribution", "errors", "finding-1"]
+    for p in a["plots"]:
+        assert stored[p["name"]][:8] == PNG_MAGIC
+        assert server.client.get(p["url"]).content == stored[p["name"]]
+    assert stored_plots(server, g["id"]) == {}  # a geometric calibration has no plots
+    r = server.client.get(a["report_url"], params={"inline": "true"})
+    srcs = re.findall(r'<img src="data:image/png;base64,([^"]+)"', r.text)
+    import base64
+    assert sorted(base64.b64decode(s) for s in srcs) == sorted(stored.values())
+
+
+def test_dollar_in_joint_names_and_a_fast_inline_report(server):
+    """Joint names with `$` (matplotlib mathtext) used to break the plots and the inline report with a 500;
+    the inline report of a small calibration is served from stored plots, well under a second."""
+    doc = spray7()
+    names = {j["name"]: f"{j['name']}$^$" for j in doc["joints"]}
+    for j in doc["joints"]:
+        j["name"] = names[j["name"]]
+    model = parse_model(doc)
+    world = World(model, 3)
+    info = hide(world, "hard_backlash", 5.0, np.random.default_rng(3), payload_kg=[0, 10, 20])
+    meas = world.measure(info["q"], payload_kg=[0, 10, 20])
+    rid = server.client.post("/robots", json=doc).json()["id"]
+    r = server.client.post(f"/robots/{rid}/measurements", files={"file": ("d.csv", write_measurements(meas, model))})
+    assert r.status_code == 201, r.text
+    a = run_job(server, r.json()["id"], "auto")
+    assert a["plots"] and any("$^$" in " ".join(f.get("joints") or []) for f in a["diagnosis"]["findings"]), a["plots"]
+    for p in a["plots"]:
+        r = server.client.get(p["url"])
+        assert r.status_code == 200 and r.content[:8] == PNG_MAGIC, (p["name"], r.text[:300])
+    t0 = time.perf_counter()
+    r = server.client.get(a["report_url"], params={"inline": "true"})
+    took = time.perf_counter() - t0
+    assert r.status_code == 200, r.text[:500]
+    assert len(re.findall(r'<img src="data:image/png;base64,', r.text)) == len(a["plots"])
+    assert "$^$" in r.text
+    assert took < 1.0, took
+
+
+def test_plots_of_10k_poses_are_aggregated():
+    """At 10k poses the error plot is not one bar per pose (20 s a plot before), and every plot draws fast."""
+    rng = np.random.default_rng(0)
+    n = 10_000
+    answer = {"model": ["geometric", "backlash"], "diagnosis": {
+        "noise_floor_mm": 0.05,
+        "per_pose": {"geometric_holdout_mm": rng.random(n).tolist(),
+                     "final_holdout_mm": (0.2 * rng.random(n)).tolist()},
+        "findings": [{"kind": "backlash", "joints": ["J5"], "plot": {
+            "x": rng.uniform(-1, 1, n).tolist(), "residual_mm": rng.normal(0, 0.1, n).tolist(),
+            "fit_mm": rng.normal(0, 0.1, n).tolist(), "x_label": "load torque on J5 (N m)"}}]}}
+    fig = report_plots.figure(answer, "errors")
+    assert sum(len(ax.patches) for ax in fig.axes) < 1000
+    for name in report_plots.names(answer):
+        t0 = time.perf_counter()
+        png = report_plots.png(answer, name)
+        assert png[:8] == PNG_MAGIC and time.perf_counter() - t0 < 5.0, name
