@@ -22,6 +22,10 @@ OPTIONAL = ("point", "timestamp", "temperature", "payload", "sigma")
 MAX_LISTED_ERRORS = 1000
 LIMIT_TOL = 1e-9
 """Relative slack on joint limits, so that values written at a limit with rounding still pass."""
+LIMIT_MODES = ("reject", "warn")
+"""parse_measurements(limits=...): out-of-limit joint values are errors ("reject", the default) or are accepted
+and reported in Measurements.out_of_limits ("warn": vendor limits are often conservative)."""
+MAX_LISTED_ROWS = 10
 
 
 class MeasurementError(ValueError):
@@ -47,6 +51,7 @@ class Measurements:
     payload: np.ndarray | None = None  # (N,) kg
     sigma: np.ndarray | None = None  # (N,) mm, 1-sigma per coordinate
     instrument: str | None = None  # noise preset (calib_core.instruments) used where `sigma` is absent
+    out_of_limits: list[dict] = field(default_factory=list)  # limits="warn": per joint, the rows beyond its limits
 
     @property
     def n_poses(self) -> int:
@@ -134,10 +139,15 @@ def _split(line: str) -> list[str]:
     return next(csv.reader([line], skipinitialspace=True), [])
 
 
-def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | None = None) -> Measurements:
+def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | None = None,
+                       limits: str = "reject") -> Measurements:
     """Parse a contract CSV against the model; raises MeasurementError listing every problem.
 
     `instrument` names the noise preset (calib_core.instruments) for rows without a `sigma` column.
+    `limits`: "reject" (default) makes a joint value outside the model's joint limits an error; "warn" accepts
+    it (the plausibility bound of 100 turns still holds) and lists the extent per joint in
+    `Measurements.out_of_limits`: {joint, unit, limits [lo, hi], rows (how many), min, max (of the column),
+    first_rows (line numbers, at most MAX_LISTED_ROWS)}, all in the model's units.
 
     Every value is checked against the plausibility ranges of calib_core.model (coordinates, sigma, payload,
     temperature, timestamps, joint values), so nothing absurd but finite reaches the numerics.  At most
@@ -145,6 +155,9 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
     if instrument is not None and instrument not in INSTRUMENTS:
         raise MeasurementError([{"row": None, "column": None, "value": str(instrument)[:100],
                                  "message": f"unknown instrument: one of {', '.join(INSTRUMENTS)}"}])
+    if limits not in LIMIT_MODES:
+        raise MeasurementError([{"row": None, "column": None, "value": str(limits)[:100],
+                                 "message": f"unknown limits mode: one of {', '.join(LIMIT_MODES)}"}])
     text = _decode(data)
     lines, commented = [], []
     for k, ln in enumerate(text.splitlines()):
@@ -237,6 +250,7 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
     values = {c: np.empty(len(rows) - 1) for c in numeric}
     stamps = np.empty(len(rows) - 1) if "timestamp" in col else None
     ids: list[str] = []
+    beyond: dict[int, list[int]] = {}  # limits="warn": joint -> line numbers of its out-of-limit values
     for i, ((line, _), fields) in enumerate(zip(lines[1:], rows[1:])):
         if fields is None:
             continue
@@ -253,11 +267,14 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
             if c in model.joint_names:
                 j = model.joint_names.index(c)
                 slack = LIMIT_TOL * max(1.0, abs(hi[j] - lo[j])) if math.isfinite(hi[j] - lo[j]) else 0.0
-                if not lo[j] - slack <= v <= hi[j] + slack:
+                outside = not lo[j] - slack <= v <= hi[j] + slack
+                if outside and limits == "reject":
                     err(line, c, raw, f"outside the joint limits [{lo[j]:g}, {hi[j]:g}] {model.joint_unit(j)}")
                 elif not model.prismatic[j] and not abs(v) <= rev_max:
                     err(line, c, raw, f"implausible joint value: |{c}| must be at most {rev_max:g} "
                                       f"{model.angle_unit} (100 turns)")
+                elif outside:
+                    beyond.setdefault(j, []).append(line)
             elif c in ("x", "y", "z"):
                 if not abs(v) <= point_max:
                     err(line, c, raw, f"implausible coordinate: |{c}| must be at most {point_max:g} {unit}"
@@ -294,12 +311,20 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
         if total:
             fail()
 
+    out_of_limits = []
+    for j in sorted(beyond):
+        col_j = values[model.joint_names[j]]
+        out_of_limits.append({"joint": model.joint_names[j], "unit": model.joint_unit(j),
+                              "limits": [float(b) if math.isfinite(b) else None for b in (lo[j], hi[j])],
+                              "rows": len(beyond[j]), "min": float(col_j.min()), "max": float(col_j.max()),
+                              "first_rows": beyond[j][:MAX_LISTED_ROWS]})
     joints = np.column_stack([values[c] for c in model.joint_names]) * js
     points = np.column_stack([values[c] for c in ("x", "y", "z")]) * ls
     return Measurements(
         joints=joints, points=points, point_ids=ids, timestamp=stamps,
         temperature=values.get("temperature"), payload=values.get("payload"),
         sigma=values["sigma"] * ls if "sigma" in values else None, instrument=instrument,
+        out_of_limits=out_of_limits,
     )
 
 

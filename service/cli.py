@@ -13,6 +13,8 @@ HIDDEN_KINDS = ("joint_spring", "stiffening_spring", "hard_backlash", "soft_back
                 "rail_straightness", "cantilever", "telescopic_bending", "thermal_growth", "base_tilt", "rehoming_step",
                 "cable_force")
 """calib_world.KINDS, spelled out so that `calib --help` does not import numpy and scipy."""
+INSTRUMENTS = ("laser_tracker", "optical", "motion_capture", "total_station")
+"""calib_core.instruments.INSTRUMENTS, spelled out likewise (tests check that they agree)."""
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -194,6 +196,12 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--robot", metavar="MODEL.json", help="a contract model file (with --data: real measurements)")
     demo.add_argument("--data", metavar="MEASUREMENTS.csv", help="a contract measurement CSV of that robot; "
                       "30 %% of the poses are held out for validation")
+    demo.add_argument("--instrument", choices=INSTRUMENTS,
+                      help="the noise model where the CSV has no sigma column (POST .../measurements?instrument=; "
+                      "default: a laser tracker, assumed)")
+    demo.add_argument("--limits", choices=["reject", "warn"], default="reject",
+                      help="joint values outside the model's limits: reject the CSV (default) or accept them and "
+                      "report the extent (POST .../measurements?limits=)")
     demo.add_argument("--report", default="calib-demo-report.html", metavar="PATH",
                       help="where to save the report (default ./calib-demo-report.html)")
     demo.add_argument("--keep-serving", action="store_true", help="leave the service running at the end (Ctrl-C stops it)")

@@ -273,7 +273,7 @@ def simulated(effect: str | None, seed: int) -> Campaign:
                     twin=world, hidden=hidden, val_truth=val.truth.points, n_total=N_CAL + N_VAL)
 
 
-def from_files(robot: Path, data: Path, seed: int) -> Campaign:
+def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None, limits: str = "reject") -> Campaign:
     try:
         doc = json.loads(robot.read_text())
     except (OSError, ValueError) as exc:
@@ -284,7 +284,7 @@ def from_files(robot: Path, data: Path, seed: int) -> Campaign:
         raise DemoError(f"the model {robot} is not valid: {exc}") from None
     try:
         text = data.read_text(encoding="utf-8-sig")
-        meas = parse_measurements(text, model)
+        meas = parse_measurements(text, model, instrument=instrument, limits=limits)
     except OSError as exc:
         raise DemoError(f"cannot read the measurements {data}: {exc}") from None
     except MeasurementError as exc:
@@ -322,7 +322,8 @@ def run(args) -> int:
         return 2
     try:
         if args.data:
-            camp = from_files(Path(args.robot), Path(args.data), seed)
+            camp = from_files(Path(args.robot), Path(args.data), seed, getattr(args, "instrument", None),
+                              getattr(args, "limits", "reject"))
         else:
             camp = simulated(args.effect, seed)
     except DemoError as exc:
@@ -389,10 +390,16 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
         say(f"The twin hides {hidden}: it is revealed at the end (calib demo --seed {seed} repeats this run).", 3)
     say(f"Calibration poses: {camp.cal.n_poses}, uploaded. Validation: {camp.validation}.", 3)
     robot = api.call("POST", "/robots", (201,), json=camp.model_doc).json()
-    ms = api.call("POST", f"/robots/{robot['id']}/measurements", (201,),
+    params = {"limits": getattr(args, "limits", "reject")}
+    if getattr(args, "instrument", None):
+        params["instrument"] = args.instrument
+    ms = api.call("POST", f"/robots/{robot['id']}/measurements", (201,), params=params,
                   files={"file": ("campaign.csv", camp.csv_text.encode(), "text/csv")}).json()
     say(f"POST /robots -> robot {robot['id']}; POST /robots/{{id}}/measurements -> {ms['n_poses']} poses stored "
         f"(set {ms['id']}).", 3)
+    for o in ms.get("out_of_limits") or []:
+        say(f"--limits warn: {o['joint']} outside its limits [{o['limits'][0]}, {o['limits'][1]}] {o['unit']} on "
+            f"{o['rows']} row(s); the data span {o['min']:g} to {o['max']:g} {o['unit']}.", 3)
 
     head("3. The calibration: POST /jobs {\"model\": \"auto\"}")
     say("The service identifies the geometric model, then looks at what it still gets wrong, names the cause, "

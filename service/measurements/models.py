@@ -16,4 +16,9 @@ class MeasurementSet(Base):
     size_bytes: Mapped[int] = mapped_column(Integer)
     sha256: Mapped[str] = mapped_column(String(64))
     raw: Mapped[bytes] = mapped_column(LargeBinary)  # the uploaded bytes; jobs re-parse them
+    # how jobs re-parse them (migration 0003): the noise preset where the CSV has no `sigma` (None: the default,
+    # said so in the answer) and the joint-limits mode (None: "reject"); `out_of_limits` is what "warn" accepted
+    instrument: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    limits: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    out_of_limits: Mapped[list | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[float] = mapped_column(Float, default=now, index=True)

@@ -1,13 +1,20 @@
 from __future__ import annotations
 
+from typing import Literal
+
 from fastapi import APIRouter, Depends, File, Query, Request, Response, UploadFile
 from sqlalchemy.orm import Session
+
+from calib_core.instruments import INSTRUMENTS
 
 from ..db import Database
 from ..deps import get_db, get_read_session, get_settings, require_writer
 from ..problems import ProblemError, problem_responses
 from . import service
 from .schemas import MeasurementSetOut
+
+Instrument = Literal[tuple(INSTRUMENTS)]  # type: ignore[valid-type]
+"""The names of calib_core.instruments.INSTRUMENTS: an enum in the OpenAPI, a 422 naming the choices otherwise."""
 
 router = APIRouter(tags=["measurements"])
 
@@ -36,14 +43,21 @@ async def one_file_part(request: Request) -> None:
                             "properties": {"file": {"type": "string", "format": "binary"}}},
                  "examples": {"spray7": {"summary": "one pose of spray7", "value": {"file": CSV_EXAMPLE}}}}}}})
 def upload(robot_id: str, response: Response, file: UploadFile = File(..., description="the measurement CSV"),
+           instrument: Instrument | None = Query(None, description="the noise model where the CSV has no `sigma` "
+                                                 "column (calib_core.instruments); default: a laser tracker, and "
+                                                 "the answer's `noise_model` says it was assumed"),
+           limits: Literal["reject", "warn"] = Query("reject", description="joint values outside the model's "
+                                                     "limits: `reject` (422 naming each) or `warn` (accepted; "
+                                                     "the answer's `out_of_limits` gives the extent per joint)"),
            db: Database = Depends(get_db), settings=Depends(get_settings)) -> MeasurementSetOut:
     """The CSV is checked all-or-nothing against the robot's model (joint names, limits, numbers, timestamps).
     On any problem nothing is stored and the 422 problem document lists every error as
-    `{row, column, value, message}` (row = line number in the file). Bodies above the size limit get 413."""
+    `{row, column, value, message}` (row = line number in the file). Bodies above the size limit get 413.
+    `instrument` and `limits` are stored with the set and used by every job on it."""
     raw = file.file.read(settings.max_upload_bytes + 1)
     if len(raw) > settings.max_upload_bytes:
         raise ProblemError(413, f"the upload exceeds {settings.max_upload_bytes} bytes", kind="too-large")
-    m = service.create_measurement_set(db, robot_id, raw, file.filename)
+    m = service.create_measurement_set(db, robot_id, raw, file.filename, instrument, limits)
     response.headers["Location"] = f"/measurements/{m.id}"
     return MeasurementSetOut.of(m)
 

@@ -34,9 +34,9 @@ MIN_POSES = 3
 MAX_FILENAME_CHARS = 255
 
 
-def parse_or_reject(raw: bytes, model) -> Measurements:
+def parse_or_reject(raw: bytes, model, instrument: str | None = None, limits: str = "reject") -> Measurements:
     try:
-        meas = parse_measurements(raw, model)
+        meas = parse_measurements(raw, model, instrument=instrument, limits=limits)
     except MeasurementError as exc:
         shown = min(len(exc.errors), MAX_ERRORS)
         more = f" (the first {shown} are listed)" if exc.total > shown else ""
@@ -76,14 +76,17 @@ def check_filename(filename: str | None) -> str | None:
     return filename
 
 
-def create_measurement_set(db: Database, robot_id: str, raw: bytes, filename: str | None) -> MeasurementSet:
-    """Parse outside any write transaction (robots are immutable), then insert in one short transaction."""
+def create_measurement_set(db: Database, robot_id: str, raw: bytes, filename: str | None,
+                           instrument: str | None = None, limits: str = "reject") -> MeasurementSet:
+    """Parse outside any write transaction (robots are immutable), then insert in one short transaction.
+    `instrument` and `limits` are stored with the set: its jobs re-parse the CSV with them."""
     with db.read_session() as s:
         model = model_of(get_robot(s, robot_id))
     filename = check_filename(filename)
-    meas = parse_or_reject(raw, model)
+    meas = parse_or_reject(raw, model, instrument, limits)
     m = MeasurementSet(robot_id=robot_id, filename=filename, n_poses=meas.n_poses, columns=_header(raw),
-                       size_bytes=len(raw), sha256=hashlib.sha256(raw).hexdigest(), raw=raw)
+                       size_bytes=len(raw), sha256=hashlib.sha256(raw).hexdigest(), raw=raw,
+                       instrument=instrument, limits=limits, out_of_limits=meas.out_of_limits)
     with db.session() as s:
         s.add(m)
     return m

@@ -62,7 +62,8 @@ def render_plots(result: dict) -> dict[str, bytes]:
 
 def run_job(job_id: str, mode: str, model_json: dict, raw: bytes, delay_s: float = 0.0,
             progress: Callable[[float, str], None] | None = None, poison: bool = False,
-            with_plots: bool = True) -> dict:
+            with_plots: bool = True, instrument: str | None = None, limits: str = "reject") -> dict:
+    """`instrument` and `limits` are the measurement set's, as uploaded: the CSV is re-parsed as it was checked."""
     import calib_core
     from calib_core.identify import identify
     from calib_core.io import parse_measurements
@@ -87,7 +88,7 @@ def run_job(job_id: str, mode: str, model_json: dict, raw: bytes, delay_s: float
     try:
         report(0.02, "parsing the measurements")
         model = parse_model(model_json)
-        meas = parse_measurements(raw, model)
+        meas = parse_measurements(raw, model, instrument=instrument, limits=limits)
         if delay_s > 0:  # tests only, see the module docstring
             t_end = time.monotonic() + delay_s
             while (left := t_end - time.monotonic()) > 0:
@@ -151,7 +152,8 @@ def slot_main(conn, parent_pid: int, warm: bool, poison: bool) -> None:
     """A job process: warm up, then run the jobs the worker sends, one at a time, until the pipe closes.
 
     Messages to the worker: ("ready", pid), ("progress", job_id, fraction, message), ("done", job_id, out).
-    Messages from it: ("job", job_id, mode, model_json, raw, delay_s)."""
+    Messages from it: ("job", job_id, mode, model_json, raw, delay_s, options) with options the measurement
+    set's {"instrument", "limits"}."""
     # the worker decides when a job process ends: a Ctrl-C or a SIGTERM to the process group (a graceful
     # restart) must not look like a crashed job; the worker kills us after releasing the job
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -171,13 +173,13 @@ def slot_main(conn, parent_pid: int, warm: bool, poison: bool) -> None:
             return
         if msg[0] != "job":
             continue
-        _, job_id, mode, model_json, raw, delay_s = msg
+        _, job_id, mode, model_json, raw, delay_s, options = msg
 
         def progress(f: float, m: str, _id=job_id) -> None:
             conn.send(("progress", _id, f, m))
 
         try:
-            out = run_job(job_id, mode, model_json, raw, delay_s, progress, poison)
+            out = run_job(job_id, mode, model_json, raw, delay_s, progress, poison, **options)
         except MemoryError:
             out = {"ok": False, "infrastructure": True, "error": "MemoryError: the job's process ran out of memory"}
         try:

@@ -31,6 +31,8 @@ class Claimed:
     robot_id: str
     measurement_set_id: str
     run_seconds: float = 0.0  # run time of the earlier attempts (the time limit counts all of them)
+    instrument: str | None = None  # how the job re-parses the CSV: as it was uploaded (measurement_sets)
+    limits: str = "reject"
 
 
 def claim(db: Database, worker_id: str, lease_seconds: float) -> Claimed | None:
@@ -47,7 +49,8 @@ def claim(db: Database, worker_id: str, lease_seconds: float) -> Claimed | None:
         j.progress, j.message = 0.0, f"claimed by {worker_id} (attempt {j.attempts})"
         ms = s.get(MeasurementSet, j.measurement_set_id)
         robot = s.get(Robot, ms.robot_id)
-        return Claimed(j.id, j.attempts, j.mode, robot.model_json, ms.raw, robot.id, ms.id, float(j.run_seconds or 0.0))
+        return Claimed(j.id, j.attempts, j.mode, robot.model_json, ms.raw, robot.id, ms.id, float(j.run_seconds or 0.0),
+                       ms.instrument, ms.limits or "reject")
 
 
 def _owned(job_id: str, worker_id: str):

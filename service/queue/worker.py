@@ -256,7 +256,8 @@ class Worker:
             slot.job, slot.t_job, slot.progress, slot.message = c, time.monotonic(), None, None
             slot.next_write = slot.t_job + self.settings.progress_seconds
             try:
-                slot.conn.send(("job", c.job_id, c.mode, c.model_json, c.raw, self.settings.test_job_delay_s))
+                slot.conn.send(("job", c.job_id, c.mode, c.model_json, c.raw, self.settings.test_job_delay_s,
+                                {"instrument": c.instrument, "limits": c.limits}))
             except (OSError, ValueError):  # it died just now: give the job back untouched
                 slot.job = None
                 store.release(self.db, c.job_id, self.id)

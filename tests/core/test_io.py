@@ -219,3 +219,48 @@ def test_instrument_preset_sets_the_noise_and_the_answer_names_it():
     assert np.allclose(given.noise_sigma_mm(), 0.05) and "sigma column" in given.noise_source()
     with pytest.raises(MeasurementError, match="unknown instrument"):
         parse_measurements(text, model, instrument="ruler")
+
+
+def _narrowed(lims: dict) -> "object":
+    doc = spray7()
+    for j in doc["joints"]:
+        if j["name"] in lims:
+            j["limits"] = lims[j["name"]]
+    return parse_model(doc)
+
+
+def test_limits_reject_by_default_and_warn_reports_the_extent():
+    """Out-of-limit joint values are errors naming row and column by default; limits="warn" accepts them and
+    reports per joint how many rows, the column's range and the limits, in the model's units."""
+    meas = Twin(MODEL, 3).measure(n=60)
+    text = write_measurements(meas, MODEL)
+    narrow = _narrowed({"J2": [-40, 40], "J6": [1800, 2300]})
+    q2, q6 = np.degrees(meas.joints[:, 1]), meas.joints[:, 5]
+    out2, out6 = np.abs(q2) > 40, q6 < 1800
+    assert out2.sum() >= 3 and out6.sum() >= 3  # the twin samples the full spray7 ranges
+    with pytest.raises(MeasurementError) as exc:
+        parse_measurements(text, narrow)
+    errs = exc.value.errors
+    assert exc.value.total == out2.sum() + out6.sum()
+    assert {e["row"] for e in errs if e["column"] == "J2"} == set(np.flatnonzero(out2) + 2)  # line numbers
+    assert all("outside the joint limits [-40, 40] deg" in e["message"] for e in errs if e["column"] == "J2")
+
+    got = parse_measurements(text, narrow, limits="warn")
+    assert np.allclose(got.joints, parse_measurements(text, MODEL).joints)  # the values as given, not clipped
+    assert got.n_poses == 60 and [o["joint"] for o in got.out_of_limits] == ["J2", "J6"]
+    j2, j6 = got.out_of_limits
+    assert j2["unit"] == "deg" and j2["limits"] == [-40.0, 40.0] and j2["rows"] == out2.sum()
+    assert np.isclose(j2["min"], q2.min(), atol=1e-6) and np.isclose(j2["max"], q2.max(), atol=1e-6)
+    assert j2["first_rows"] == list(np.flatnonzero(out2) + 2)[:10]
+    assert j6["unit"] == "mm" and j6["limits"] == [1800.0, 2300.0] and j6["rows"] == out6.sum()
+    assert np.isclose(j6["min"], q6.min(), atol=1e-6)
+    assert parse_measurements(text, MODEL, limits="warn").out_of_limits == []  # within the limits: nothing
+    assert got.subset([0, 1]).out_of_limits == []  # a report of the parse, not of the poses
+
+
+def test_limits_warn_keeps_the_other_checks():
+    with pytest.raises(MeasurementError) as exc:  # 100 turns is still implausible
+        parse_measurements(_with("J2", "1e200"), MODEL, limits="warn")
+    assert exc.value.errors[0]["column"] == "J2" and "36000 deg" in exc.value.errors[0]["message"]
+    with pytest.raises(MeasurementError, match="unknown limits mode: one of reject, warn"):
+        parse_measurements(f"{HEADER}\n{ROW}\n", MODEL, limits="ignore")

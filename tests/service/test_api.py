@@ -192,3 +192,88 @@ def test_auth_on_writing_calls(tmp_path, model_doc):
         assert sqlite_count(tmp_path / "auth.db", "robots") == 1
     finally:
         s.stop()
+
+
+def upload(server, robot_id: str, text: str, **params):
+    return server.client.post(f"/robots/{robot_id}/measurements", params=params,
+                              files={"file": ("cell.csv", text, "text/csv")})
+
+
+def test_instrument_is_validated_stored_and_names_the_noise_model(server, robot, csv_text):
+    """The same CSV (no sigma column) with instrument=motion_capture and with none: the jobs re-parse it with the
+    stored preset, so the noise floors differ and the answer names the preset that was used."""
+    body = assert_problem(upload(server, robot["id"], csv_text, instrument="ruler"), 422)
+    err = body["errors"][0]
+    assert err["field"] == "query.instrument" and err["value"] == "ruler"
+    assert all(name in err["message"] for name in ("laser_tracker", "optical", "motion_capture", "total_station"))
+
+    mocap = upload(server, robot["id"], csv_text, instrument="motion_capture")
+    plain = upload(server, robot["id"], csv_text)
+    assert mocap.status_code == plain.status_code == 201, (mocap.text, plain.text)
+    mocap, plain = mocap.json(), plain.json()
+    assert mocap["instrument"] == "motion_capture" and plain["instrument"] is None
+    assert server.client.get(f"/measurements/{mocap['id']}").json() == mocap
+    jobs = [server.client.post("/jobs", json={"measurement_set_id": m["id"], "model": "auto"}) for m in (mocap, plain)]
+    assert all(r.status_code == 202 for r in jobs), [r.text for r in jobs]
+
+    def answer(loc):
+        job = wait_for(lambda: (j := server.client.get(loc).json())["status"] in ("succeeded", "failed") and j,
+                       120, "the auto job")
+        assert job["status"] == "succeeded", job
+        return server.client.get(f"/calibrations/{job['calibration_id']}").json()
+
+    a_mocap, a_plain = (answer(r.headers["location"]) for r in jobs)
+    assert "motion_capture" in a_mocap["noise_model"] and "motion_capture" in a_mocap["diagnosis"]["noise_model"]
+    assert "laser_tracker" in a_plain["noise_model"] and "assumed" in a_plain["noise_model"]
+    assert a_mocap["diagnosis"]["noise_floor_mm"] > 2 * a_plain["diagnosis"]["noise_floor_mm"]
+
+
+@pytest.fixture(scope="module")
+def narrow_robot(server, model_doc) -> dict:
+    """spray7 with J2 limited to +-40 deg: the module's CSV (spray7's full +-60 deg) has rows beyond that."""
+    doc = {**model_doc, "name": "spray7-narrow",
+           "joints": [dict(j, limits=[-40, 40]) if j["name"] == "J2" else j for j in model_doc["joints"]]}
+    r = server.client.post("/robots", json=doc)
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def _beyond_40(csv_text: str) -> list[int]:
+    """Line numbers of the rows whose J2 is outside +-40 deg."""
+    lines = csv_text.strip().splitlines()
+    k = lines[0].split(",").index("J2")
+    return [i + 1 for i, ln in enumerate(lines) if i and abs(float(ln.split(",")[k])) > 40]
+
+
+def test_limits_reject_by_default(server, narrow_robot, csv_text):
+    bad = _beyond_40(csv_text)
+    assert len(bad) >= 5
+    for params in ({}, {"limits": "reject"}):
+        body = assert_problem(upload(server, narrow_robot["id"], csv_text, **params), 422)
+        assert body["type"].endswith("/invalid-csv") and body["error_count"] == len(bad)
+        assert [e["row"] for e in body["errors"]] == bad[:len(body["errors"])]
+        assert all(e["column"] == "J2" and "outside the joint limits [-40, 40] deg" in e["message"]
+                   for e in body["errors"])
+    body = assert_problem(upload(server, narrow_robot["id"], csv_text, limits="ignore"), 422)
+    assert body["errors"][0]["field"] == "query.limits" and "'warn'" in body["errors"][0]["message"]
+
+
+def test_limits_warn_accepts_reports_and_calibrates(server, narrow_robot, csv_text):
+    bad = _beyond_40(csv_text)
+    r = upload(server, narrow_robot["id"], csv_text, limits="warn")
+    assert r.status_code == 201, r.text
+    ms = r.json()
+    lines = csv_text.strip().splitlines()
+    q2 = [float(ln.split(",")[lines[0].split(",").index("J2")]) for ln in lines[1:]]
+    assert ms["limits"] == "warn" and ms["n_poses"] == 150
+    assert ms["out_of_limits"] == [{"joint": "J2", "unit": "deg", "limits": [-40.0, 40.0], "rows": len(bad),
+                                    "min": pytest.approx(min(q2)), "max": pytest.approx(max(q2)),
+                                    "first_rows": bad[:10]}]
+    assert server.client.get(f"/measurements/{ms['id']}").json() == ms
+    assert next(m for m in server.client.get(f"/robots/{narrow_robot['id']}/measurements").json()
+                if m["id"] == ms["id"]) == ms
+    for mode in ("geometric", "auto"):  # the job re-parses the CSV as uploaded: the out-of-limit rows are used
+        job = run_job(server, ms["id"], mode)
+        assert job["status"] == "succeeded", job
+        cal = server.client.get(f"/calibrations/{job['calibration_id']}").json()
+        assert cal["metrics"]["n_poses"] == 150 and cal["metrics"]["rms_mm"] < 0.5

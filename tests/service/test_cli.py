@@ -5,7 +5,9 @@ import sqlite3
 import subprocess
 import sys
 
-from .conftest import ROOT, base_env
+import pytest
+
+from .conftest import PG_URL, ROOT, base_env
 
 
 def calib(*args, env=None):
@@ -22,3 +24,73 @@ def test_db_upgrade_creates_the_schema(tmp_path):
         assert c.execute("PRAGMA journal_mode").fetchone()[0] in ("wal", "delete")
     assert {"robots", "measurement_sets", "jobs", "calibrations", "alembic_version"} <= tables
     assert calib("db", "upgrade", env=base_env(f"sqlite:///{db}")).returncode == 0  # idempotent
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "postgres"])
+def test_migration_0003_keeps_old_sets_and_matches_the_models(kind, tmp_path):
+    """0002 -> head on a database holding a measurement set: the new columns are null (read as no instrument,
+    limits=reject), the schema equals the ORM models, and downgrade/upgrade round-trips."""
+    from alembic import command
+    from alembic.autogenerate import compare_metadata
+    from alembic.migration import MigrationContext
+    from sqlalchemy import create_engine, text
+
+    from service.cli import alembic_config
+    from service.models import Base
+
+    if kind == "sqlite":
+        url = f"sqlite:///{tmp_path / 'm.db'}"
+    else:
+        if not PG_URL:
+            pytest.skip("CALIB_TEST_POSTGRES_URL is not set (.ci/run starts a PostgreSQL server)")
+        url = PG_URL
+        eng = create_engine(url)
+        with eng.begin() as c:
+            c.execute(text("DROP SCHEMA IF EXISTS public CASCADE"))
+            c.execute(text("CREATE SCHEMA public"))
+        eng.dispose()
+    cfg = alembic_config(url)
+    command.upgrade(cfg, "0002")
+    eng = create_engine(url)
+    try:
+        with eng.begin() as c:
+            c.execute(text("INSERT INTO robots (id, name, model_json, joint_names, created_at) "
+                           "VALUES ('r1', 'old', '{}', '[]', 0)"))
+            c.execute(text("INSERT INTO measurement_sets (id, robot_id, filename, n_poses, columns, size_bytes, "
+                           "sha256, raw, created_at) VALUES ('m1', 'r1', NULL, 3, '[]', 1, 'x', :raw, 0)"),
+                      {"raw": b"x"})
+        command.upgrade(cfg, "head")
+        with eng.connect() as c:
+            assert c.execute(text("SELECT instrument, limits, out_of_limits FROM measurement_sets")).all() == \
+                [(None, None, None)]
+            assert compare_metadata(MigrationContext.configure(c), Base.metadata) == []
+        command.downgrade(cfg, "0002")
+        command.upgrade(cfg, "head")
+    finally:
+        eng.dispose()
+
+
+def test_demo_takes_instrument_and_limits(tmp_path):
+    from calib_core.instruments import INSTRUMENTS
+    from service import cli
+
+    assert tuple(INSTRUMENTS) == cli.INSTRUMENTS
+    r = calib("demo", "--instrument", "ruler", env=base_env(f"sqlite:///{tmp_path / 'd.db'}"))
+    assert r.returncode == 2 and "--instrument" in r.stderr and "motion_capture" in r.stderr
+    r = calib("demo", "--limits", "ignore", env=base_env(f"sqlite:///{tmp_path / 'd.db'}"))
+    assert r.returncode == 2 and "--limits" in r.stderr and "warn" in r.stderr
+
+
+def test_demo_reads_local_data_with_the_same_limits_mode(tmp_path, model_doc, csv_text):
+    """`calib demo --data` parses the CSV locally (for its hold-out split) with --limits too."""
+    import json
+
+    from service import demo
+
+    doc = {**model_doc, "joints": [dict(j, limits=[-40, 40]) if j["name"] == "J2" else j for j in model_doc["joints"]]}
+    (tmp_path / "m.json").write_text(json.dumps(doc))
+    (tmp_path / "d.csv").write_text(csv_text)
+    with pytest.raises(demo.DemoError, match="outside the joint limits"):
+        demo.from_files(tmp_path / "m.json", tmp_path / "d.csv", 0)
+    camp = demo.from_files(tmp_path / "m.json", tmp_path / "d.csv", 0, "motion_capture", "warn")
+    assert camp.cal.n_poses + camp.val.n_poses == 150 and camp.cal.instrument == "motion_capture"
