@@ -12,6 +12,14 @@ assignment for all). The best score wins, but with the one-standard-error rule: 
 held-out RMS is within the fold-to-fold standard error of the best is chosen. Registration is always a
 candidate, so the chosen model's held-out RMS is never worse than registration alone; when registration is
 chosen, calibrating the geometry does not help on this data and `helps` is False.
+
+Speed (a 150-pose job is meant to answer in well under a second): every candidate is exactly
+`identify(model, meas, free=..., prior_scale=..., folds=k)`, but the candidates share what does not depend on
+them: the pre-alignment, the identifiability analysis of the pose set and a memo of chain evaluations
+(point and Jacobian at every pose, per parameter vector). Each candidate's fit begins at the previous
+candidate's solution (the neighbouring prior strength or the next smaller model), and every fold at the
+candidate's full-data solution, so LM takes a step or two to the same convergence test instead of the
+whole way from nominal; the answers agree with separate identify() calls to the convergence tolerance.
 """
 from __future__ import annotations
 
@@ -19,7 +27,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .identify import Calibration, fold_ids, identify
+from . import kinematics as K
+from .identify import (DISTINCT_DECIMALS, Calibration, ChainEvaluations, _fit, _select, assess, cross_validate,
+                       fold_ids, identify, model_error_sigma, prealign)
 from .io import Measurements
 from .model import RobotModel
 
@@ -71,6 +81,49 @@ def candidates(model: RobotModel) -> list[tuple[str, tuple[str, ...] | None, flo
     return out
 
 
+class _Shared:
+    """What every candidate of one pose set shares: noise weights, pre-alignment, identifiability analysis and
+    the memo of chain evaluations; `identify` is identify(model, meas, free=..., ...) on them."""
+
+    def __init__(self, model: RobotModel, meas: Measurements):
+        self.model, self.meas = model, meas
+        self.ident = None
+        self.last_fit = None  # the last candidate's first fit (noise weights alone), full vector: the next one's start
+        n_distinct = len(np.unique(np.round(meas.joints, DISTINCT_DECIMALS), axis=0))
+        if meas.n_poses < 3 or n_distinct < 3:
+            return  # identify() refuses such a pose set and says why
+        self.sigma = meas.noise_sigma_mm()
+        self.x0, self.R0 = prealign(model, meas)
+        self.names = K.parameter_names(model)
+        self.evals = ChainEvaluations(model, meas.joints, self.R0)
+        J = self.evals(self.x0)[1].reshape(-1, len(self.x0))
+        self.ident = assess(model, meas.joints, J, self.names)
+
+    def identify(self, free, idx, *, loss, folds, prior_scale, start=None) -> Calibration:
+        model, meas = self.model, self.meas
+        if self.ident is None or 3 * meas.n_poses <= len(idx):  # refused: identify() says why
+            return identify(model, meas, free=free, loss=loss, folds=folds, prior_scale=prior_scale)
+        x0, R0, sigma = self.x0, self.R0, self.sigma
+        fit = dict(prior_scale=prior_scale, evals=self.evals)
+        sol = _fit(model, meas, sigma, x0, R0, idx, loss, True, start=None if start is None else start[idx], **fit)
+        self.last_fit = x0.copy()
+        self.last_fit[idx] = sol.x
+        sigma0_measurement = float(np.sqrt(sol.s2))
+        s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
+        if s_model > 0.0:
+            sigma = np.sqrt(sigma**2 + s_model**2)
+            sol = _fit(model, meas, sigma, x0, R0, idx, loss, True, start=sol.x, **fit)
+        x = x0.copy()
+        x[idx] = sol.x
+        cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=self.ident,
+                          point_ids=list(meas.point_ids), sigma_mm=sigma, model_error_mm=s_model,
+                          sigma0_measurement=sigma0_measurement, prior_scale=prior_scale,
+                          noise_model=meas.noise_source())
+        cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, True, folds,
+                                                 prior_scale=prior_scale, start=sol.x, evals=self.evals)
+        return cal
+
+
 def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None = None,
                     folds: int = 5) -> GeometrySelection:
     """Pick the geometric model's size (and prior strength) by k-fold held-out RMS with the one-SE rule.
@@ -80,22 +133,23 @@ def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None =
     k = min(folds, meas.n_poses // 2)
     if k < 2:
         raise ValueError(f"{meas.n_poses} poses are too few to judge a model on held-out poses")
-    table, cals = [], {}
+    shared = _Shared(model, meas)
+    table, cals, seen = [], {}, []
     for label, free, scale in candidates(model):
+        idx = _select(shared.names, shared.ident, free) if shared.ident is not None else None
+        if idx is not None and any(np.array_equal(idx, i) and scale == s for i, s in seen):
+            continue  # the same model as a simpler candidate (e.g. no offset is identifiable)
         try:
-            cal = identify(model, meas, free=free, loss=loss, folds=k, prior_scale=scale)
+            cal = shared.identify(free, idx, loss=loss, folds=k, prior_scale=scale, start=shared.last_fit)
         except ValueError as e:
             if label == "registration":
                 raise
             table.append({"label": label, "free": free, "prior_scale": scale, "n_parameters": None,
                           "holdout_rms_mm": None, "fold_se_mm": None, "skipped": str(e)})
             continue
+        seen.append((cal.free, scale))
         rms, se = _fold_stats(cal.holdout_residual_mm, k)
-        n_par = int(len(cal.free))
-        if any(r["n_parameters"] == n_par and r["prior_scale"] == scale and r["holdout_rms_mm"] == rms
-               for r in table):
-            continue  # the same model as a simpler candidate (e.g. no offset is identifiable)
-        table.append({"label": label, "free": free, "prior_scale": scale, "n_parameters": n_par,
+        table.append({"label": label, "free": free, "prior_scale": scale, "n_parameters": int(len(cal.free)),
                       "holdout_rms_mm": rms, "fold_se_mm": se})
         cals[label] = cal
     scored = [r for r in table if r["holdout_rms_mm"] is not None]

@@ -86,12 +86,18 @@ def least_squares(
     max_iter: int = 100,
     ftol: float = 1e-10,
     atol: float = 1e-14,
+    covariance: bool = True,
+    damping: float = 1e-4,
 ) -> Solution:
     """Minimise sum_i w_i |r_i / sigma_i|^2 + |(x - prior) / prior_std|^2.
 
     residual_jac(x) -> (r (N, 3) measured - predicted, J (N, 3, p) = d predicted / dx).
     sigma (N,) is the 1-sigma per-coordinate uncertainty of each pose, same length unit as r.
     Converged when the next step would lower the weighted cost by less than ftol * cost + atol.
+    `damping` is the initial Marquardt damping (relative to the unit diagonal of the scaled normal matrix): a
+    start already near the optimum (a warm start) takes Gauss-Newton steps at once with a small one.
+    covariance=False skips the covariance (cov NaN, s2 on m - p degrees of freedom): for fits whose estimate
+    alone is used, such as cross-validation folds.
     """
     if loss not in (None, "huber", "cauchy"):
         raise ValueError(f"unknown robust loss {loss!r}; use 'huber', 'cauchy' or none")
@@ -115,7 +121,7 @@ def least_squares(
 
     w = np.ones(len(inv_s))
     r, rw, A, g, cost = normal_eq(x, w)
-    mu = 1e-4  # Marquardt damping, relative to the unit diagonal of the scaled normal matrix
+    mu = damping  # Marquardt damping, relative to the unit diagonal of the scaled normal matrix
     converged, it = False, 0
     for it in range(1, max_iter + 1):
         H = A + np.diag(lam_diag)
@@ -142,7 +148,10 @@ def least_squares(
             if not np.allclose(w_new, w, atol=1e-6):
                 w = w_new
                 r, rw, A, g, cost = normal_eq(x, w)
-    cov1, undetermined, rank = _covariance(A, lam_diag, sandwich=reg)
+    if covariance:
+        cov1, undetermined, rank = _covariance(A, lam_diag, sandwich=reg)
+    else:
+        cov1, undetermined, rank = np.full((p, p), np.nan), None, p
     m = rw.size
     dof = max(m - rank, 1)  # an undetermined direction uses up no degree of freedom
     s2 = float((w[:, None] * rw**2).sum() / dof)

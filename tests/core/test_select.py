@@ -82,3 +82,21 @@ def test_skipped_candidates_say_why(seed):
     skipped = [r for r in s.table if r.get("skipped")]
     assert skipped and all(r["label"].startswith("full") and "measure more poses" in r["skipped"] for r in skipped)
     _check_guarantee(s)
+
+
+def test_shared_candidates_match_separate_identify(seed):
+    """The selection shares pre-alignment, identifiability and chain evaluations across candidates and warm-starts
+    every fit; each candidate must still be what identify() alone makes of it (to the convergence tolerance)."""
+    from calib_core.identify import identify
+
+    model = parse_model(spray7())
+    meas = Twin(model, seed).measure(n=60)
+    s = select_geometry(model, meas)
+    for row in s.table:
+        cal = s.calibrations[row["label"]]
+        ref = identify(model, meas, free=row["free"], folds=s.folds, prior_scale=row["prior_scale"])
+        assert np.array_equal(cal.free, ref.free)
+        np.testing.assert_allclose(cal.x, ref.x, rtol=0, atol=1e-6)
+        assert row["holdout_rms_mm"] == pytest.approx(ref.metrics()["holdout_rms_mm"], rel=1e-5)
+        assert cal.metrics()["sigma0"] == pytest.approx(ref.metrics()["sigma0"], rel=1e-6)
+        assert cal.model_error_mm == pytest.approx(ref.model_error_mm, rel=1e-6, abs=1e-12)

@@ -1,0 +1,116 @@
+"""Speed of a 150-pose `geometric` calibration (the service's main job): `calibrate(model, meas, 'geometric')`, i.e.
+the cross-validated model selection (registration / joint offsets / full geometry x 3 prior strengths, 5-fold
+held-out RMS each) plus the answer dict, on one core (BLAS single-threaded, as in the service's job processes).
+
+Peer: the same selection written the usual way with scipy: `scipy.optimize.least_squares` (TRF, 2-point finite
+differences, x_scale='jac') on the same weighted residual and prior rows, every candidate and every fold fitted
+from nominal; it gets the pre-alignment and the identifiable parameter sets for free (outside its timing). It
+skips our model-error reweighting (one fit per candidate less), so it does a little less work than we do.
+Prints a markdown table (for docs/RESULTS.md): median of `--runs` calls per data set, and the peer on the first.
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python -m benchmarks.bench_calibrate_speed [--seeds 10] [--runs 10] [--no-peer]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy.optimize import least_squares as scipy_least_squares  # noqa: E402
+
+from calib_core import kinematics as K  # noqa: E402
+from calib_core.identify import _prior_std, _select, assess, fold_ids, prealign  # noqa: E402
+from calib_core.model import parse_model  # noqa: E402
+from calib_core.pipeline import calibrate  # noqa: E402
+from calib_core.robots import arm6, spray7  # noqa: E402
+from calib_core.select import _fold_stats, candidates  # noqa: E402
+from calib_core.twin import Twin  # noqa: E402
+
+
+def median_ms(fn, runs: int) -> tuple[float, object]:
+    fn()  # warm: imports, the structural identifiability cache
+    times, out = [], None
+    for _ in range(runs):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return 1e3 * statistics.median(times), out
+
+
+def scipy_selection(model, meas, folds: int = 5) -> str:
+    """The selection with scipy least_squares and finite differences; returns the chosen label."""
+    x0, R0 = prealign(model, meas)
+    names = K.parameter_names(model)
+    ident = assess(model, meas.joints, K.Chain(model, x0, meas.joints, R0).jacobian().reshape(-1, len(x0)), names)
+    sigma = meas.noise_sigma_mm()
+    assign = fold_ids(meas.n_poses, folds)
+    rows = []
+    for label, free, scale in candidates(model):
+        idx = _select(names, ident, free)
+        std = _prior_std(model, scale)[idx]
+        has = np.isfinite(std)
+
+        def fit(mask):
+            q, y, s = meas.joints[mask], meas.points[mask], sigma[mask]
+
+            def fun(xs):
+                x = x0.copy()
+                x[idx] = xs
+                r = ((y - K.forward(model, x, q, R0)) / s[:, None]).ravel()
+                return np.r_[r, (xs - x0[idx])[has] / std[has]]
+
+            x = x0.copy()
+            x[idx] = scipy_least_squares(fun, x0[idx], jac="2-point", method="trf", x_scale="jac").x
+            return x
+
+        d = np.empty(meas.n_poses)
+        fit(np.ones(meas.n_poses, bool))  # the full-data fit (its answer is not needed for the score)
+        for k in range(folds):
+            x = fit(assign != k)
+            test = assign == k
+            d[test] = np.linalg.norm(meas.points[test] - K.forward(model, x, meas.joints[test], R0), axis=1)
+        rows.append((label, *_fold_stats(d, folds)))
+    best = min(rows, key=lambda r: r[1])
+    return next(r[0] for r in rows if r[1] <= best[1] + best[2])
+
+
+def run(seeds: int = 10, runs: int = 10, peer: bool = True) -> list[dict]:
+    out = []
+    sets = [("spray7", parse_model(spray7()), s) for s in range(seeds)] + [("arm6", parse_model(arm6()), 0)]
+    for robot, model, seed in sets:
+        meas = Twin(model, seed).measure(n=150)
+        ms, ans = median_ms(lambda: calibrate(model, meas, mode="geometric"), runs)
+        row = {"robot": robot, "seed": seed, "ms": ms, "chosen": ans["model_selection"]["chosen"]}
+        if peer and not out:
+            t = time.perf_counter()
+            row["peer_chosen"] = scipy_selection(model, meas)
+            row["peer_ms"] = 1e3 * (time.perf_counter() - t)
+        out.append(row)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--runs", type=int, default=10)
+    ap.add_argument("--no-peer", action="store_true")
+    a = ap.parse_args()
+    rows = run(a.seeds, a.runs, not a.no_peer)
+    print("| robot | twin seed | poses | calibrate geometric, median (ms) | chosen | scipy FD selection (ms) | ratio |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        peer = (f"{r['peer_ms']:.0f} (chose {r['peer_chosen']})", f"{r['peer_ms'] / r['ms']:.0f}x") \
+            if "peer_ms" in r else ("", "")
+        print(f"| {r['robot']} | {r['seed']} | 150 | {r['ms']:.0f} | {r['chosen']} | {peer[0]} | {peer[1]} |")
+    spray = [r["ms"] for r in rows if r["robot"] == "spray7"]
+    print(f"\nspray7, {len(spray)} twins: median {statistics.median(spray):.0f} ms, max {max(spray):.0f} ms "
+          f"(median of {a.runs} calls each, one core)")
+
+
+if __name__ == "__main__":
+    main()
