@@ -159,7 +159,8 @@ def test_every_relation_between_consecutive_axes(seed, relation):
 def test_prismatic_only_and_single_joint(seed):
     rng = np.random.default_rng(seed)
     for types in (["prismatic"] * 4, ["revolute"], ["prismatic"]):
-        links = [frames.Link(link_transform(rng, "general"), t, limits=(-1000.0, 1000.0)) for t in types]
+        links = [frames.Link(link_transform(rng, "general"), t,
+                             limits=(-1000.0, 1000.0) if t == "prismatic" else (-3.0, 3.0)) for t in types]
         check(links, rng.uniform(-150, 150, 3), rng)
 
 
