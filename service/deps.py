@@ -109,7 +109,13 @@ def get_db(request: Request) -> Database:
 
 def get_session(db: Database = Depends(get_db)) -> Iterator[Session]:
     """One write transaction per request. Routes use it with scope="function", so the commit happens
-    before the response is sent: a 201/202 is only ever answered for data that is durably stored."""
+    before the response is sent: a 201/202 is only ever answered for data that is durably stored.
+
+    Routes also commit themselves before they return: FastAPI validates a sync route's response model in the
+    shared thread pool before it closes function-scoped dependencies, so a commit left to this exit holds the
+    SQLite write lock (BEGIN IMMEDIATE) while waiting for a pool thread; under load every pool thread can be a
+    writer waiting for that lock (busy timeout 30 s): no thread ever frees up, and the waiters end in 503s
+    (the red-team load, benchmarks/bench_redteam.py). Errors still roll back here."""
     with db.session() as s:
         yield s
 

@@ -22,7 +22,9 @@ def create_job(response: Response, body: JobIn = Body(..., openapi_examples={
     """The job is durable once this answers 202 (same transaction); poll `Location`."""
     j = service.enqueue(s, body.measurement_set_id, body.model, settings.max_attempts)
     response.headers["Location"] = f"/jobs/{j.id}"
-    return JobOut.of(j)
+    out = JobOut.of(j)
+    s.commit()  # now, not at the dependency's exit: see deps.get_session
+    return out
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, responses=problem_responses(404),
@@ -40,7 +42,9 @@ job again answers it unchanged; a job that already succeeded or failed is a 409.
              responses=problem_responses(401, 404, 409), summary="Cancel a queued or running job",
              description=_CANCEL_DOC)
 def cancel_job(job_id: str, s: Session = Depends(get_session, scope="function")) -> JobOut:
-    return JobOut.of(service.cancel(s, job_id))
+    out = JobOut.of(service.cancel(s, job_id))
+    s.commit()  # see deps.get_session
+    return out
 
 
 @router.delete("/jobs/{job_id}", response_model=JobOut, dependencies=[Depends(require_writer)],
@@ -48,4 +52,6 @@ def cancel_job(job_id: str, s: Session = Depends(get_session, scope="function"))
                summary="Cancel a queued or running job (same as POST /jobs/{id}/cancel; the record stays)",
                description=_CANCEL_DOC)
 def delete_job(job_id: str, s: Session = Depends(get_session, scope="function")) -> JobOut:
-    return JobOut.of(service.cancel(s, job_id))
+    out = JobOut.of(service.cancel(s, job_id))
+    s.commit()  # see deps.get_session
+    return out

@@ -46,7 +46,9 @@ def create_robot_urdf(response: Response, body: bytes = Depends(_raw_body),
     as contract model JSON (with its `urdf` extension object), validated like a JSON upload."""
     r = service.create_robot_from_urdf(s, body, base, targets, length_unit, angle_unit)
     response.headers["Location"] = f"/robots/{r.id}"
-    return RobotOut.of(r)
+    out = RobotOut.of(r)
+    s.commit()  # see deps.get_session
+    return out
 
 
 # registered before the JSON route of the same path: XmlBodyRoute lets every non-XML request through to it
@@ -66,7 +68,9 @@ def create_robot(response: Response, doc: dict[str, Any] = Body(..., openapi_exa
     optional `length_unit=m|mm`, `angle_unit=rad|deg`), stored as the model JSON it converts to."""
     r = service.create_robot(s, doc)
     response.headers["Location"] = f"/robots/{r.id}"
-    return RobotOut.of(r)
+    out = RobotOut.of(r)
+    s.commit()  # see deps.get_session
+    return out
 
 
 PAGE_HEADERS = {
