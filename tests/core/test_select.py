@@ -52,12 +52,10 @@ def test_few_poses_keep_it_simple(seed):
     over-fits; and 8 poses are too few to identify it at all (skipped, said why)."""
     model = parse_model(spray7())
     twin = Twin(model, seed, error_scale=0.001, tool_error_mm=0.0)
-    s = select_geometry(model, twin.measure(n=12))
-    _check_guarantee(s)
-    assert s.free is not None, (seed, s.table)
-    s = select_geometry(model, twin.measure(n=8))
-    _check_guarantee(s)
-    assert s.free is not None, (seed, s.table)
+    for n in (12, 8):
+        s = select_geometry(model, twin.measure(n=n))
+        _check_guarantee(s)
+        assert s.free is not None, (seed, s.table)
 
 
 def test_too_few_poses_to_cross_validate():
@@ -99,4 +97,4 @@ def test_shared_candidates_match_separate_identify(seed):
         np.testing.assert_allclose(cal.x, ref.x, rtol=1e-8, atol=1e-6)
         assert row["holdout_rms_mm"] == pytest.approx(ref.metrics()["holdout_rms_mm"], rel=1e-5)
         assert cal.metrics()["sigma0"] == pytest.approx(ref.metrics()["sigma0"], rel=1e-6)
-        assert cal.model_error_mm == pytest.approx(ref.model_error_mm, rel=1e-6, abs=1e-12)
+        assert cal.model_error_mm == pytest.approx(ref.model_error_mm, rel=1e-5, abs=1e-12)
