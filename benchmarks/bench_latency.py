@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import statistics
 import subprocess
 import sys
@@ -34,24 +33,18 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from benchmarks import free_port, server_env  # noqa: E402
 from calib_core import Twin, parse_model, write_measurements  # noqa: E402
 from calib_core.robots import spray7  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_server(db_path: Path, log: Path) -> tuple[subprocess.Popen, str, float]:
     """`calib serve` on db_path; returns (process, url, seconds until /health answered)."""
     port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CALIB_")}
-    env.update({"CALIB_DATABASE_URL": f"sqlite:///{db_path}", "OPENBLAS_NUM_THREADS": "1"})
     t0 = time.perf_counter()
     p = subprocess.Popen([sys.executable, "-m", "service.cli", "--log-level", "WARNING", "serve", "--port", str(port)],
-                         cwd=ROOT, env=env, stdout=open(log, "ab"), stderr=subprocess.STDOUT, start_new_session=True)
+                         cwd=ROOT, env=server_env(db_path), stdout=open(log, "ab"), stderr=subprocess.STDOUT,
+                         start_new_session=True)
     url = f"http://127.0.0.1:{port}"
     while time.perf_counter() - t0 < 180:
         if p.poll() is not None:

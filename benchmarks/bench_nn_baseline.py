@@ -38,6 +38,7 @@ from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.optimize import minimize  # noqa: E402
 
+from benchmarks.accuracy import split_70_30  # noqa: E402
 from calib_core import datasets  # noqa: E402
 from calib_core.diagnose import diagnose  # noqa: E402
 from calib_core.identify import evaluate, fold_ids, identify  # noqa: E402
@@ -159,13 +160,6 @@ def _real(name: str):
     return model, parse_measurements(ds.csv_text, model)
 
 
-def split(n: int, s: int) -> tuple[np.ndarray, np.ndarray]:
-    """Split s: a seeded random permutation, the first 70 % calibrate."""
-    perm = np.random.default_rng(1000 + s).permutation(n)
-    k = int(round(0.7 * n))
-    return np.sort(perm[:k]), np.sort(perm[k:])
-
-
 def _world(kind: str, s: int):
     model = parse_model(spray7())
     seed = 7000 + 100 * TWIN_KINDS.index(kind) + s if kind in TWIN_KINDS else 7000 + s
@@ -184,7 +178,7 @@ def trial(data: str, s: int) -> dict:
         model, train, test, label = _world(data[6:], s)
     else:
         model, meas = _real(data)
-        tr, te = split(meas.n_poses, s)
+        tr, te = split_70_30(meas.n_poses, 1000 + s)
         train, test, label = meas.subset(tr), meas.subset(te), f"split {s}"
     out = {"data": data, "split": s, "label": label, "n": (train.n_poses, test.n_poses)}
     reg = identify(model, train, free=("base", "tool"), folds=0)

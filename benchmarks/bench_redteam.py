@@ -33,7 +33,6 @@ import json
 import os
 import random
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -45,26 +44,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from benchmarks import free_port, server_env  # noqa: E402
+
 TERMINAL = {"succeeded", "failed", "cancelled"}
 BOUNDARY = "calibredteam7f3a9c"
 HEALTH_P99_TARGET_MS = 200.0
 
 
 # ---------------------------------------------------------------- server
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def server_env(db_path: Path, max_upload: int | None) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CALIB_")}
-    env.update({"CALIB_DATABASE_URL": f"sqlite:///{db_path}", "OPENBLAS_NUM_THREADS": "1"})
-    if max_upload:
-        env["CALIB_MAX_UPLOAD_BYTES"] = str(max_upload)
-    return env
-
 
 def start_server(db_path: Path, log: Path, port: int, max_upload: int | None) -> tuple[subprocess.Popen, float]:
     t0 = time.perf_counter()
@@ -299,6 +286,14 @@ MIX = {
 }
 HOSTILE_KINDS = {"POST /robots (hostile)", "POST measurements (hostile)", "POST measurements (oversized, no Expect)",
                  "POST predict 100k x to a missing id"}
+# kind: (the Shared list of accepted ids it reads, path) for the kinds that are one GET of one such id
+GET_ONE = {
+    "GET /calibrations/{id}": ("calibrations", "/calibrations/{}"),
+    "GET report": ("calibrations", "/calibrations/{}/report"),
+    "GET report?inline=true": ("calibrations", "/calibrations/{}/report?inline=true"),
+    "GET /measurements/{id}": ("sets", "/measurements/{}"),
+    "GET /robots/{id}": ("robots", "/robots/{}"),
+}
 
 
 class Client(threading.Thread):
@@ -390,12 +385,9 @@ class Client(threading.Thread):
                         with sh.lock:
                             if cid not in sh.calibrations:
                                 sh.calibrations.append(cid)
-            elif kind == "GET /calibrations/{id}":
-                self.call(kind, "GET", f"/calibrations/{self.pick(sh.calibrations)}")
-            elif kind == "GET report":
-                self.call(kind, "GET", f"/calibrations/{self.pick(sh.calibrations)}/report")
-            elif kind == "GET report?inline=true":
-                self.call(kind, "GET", f"/calibrations/{self.pick(sh.calibrations)}/report?inline=true")
+            elif kind in GET_ONE:
+                ids, path = GET_ONE[kind]
+                self.call(kind, "GET", path.format(self.pick(getattr(sh, ids))))
             elif kind == "GET plots/*.png":
                 name = rng.choice(["errors", "distribution", "finding-1"])
                 self.call(kind, "GET", f"/calibrations/{self.pick(sh.calibrations)}/plots/{name}.png")
@@ -404,10 +396,6 @@ class Client(threading.Thread):
             elif kind == "POST predict 100k x to a missing id":
                 self.call(kind, "POST", "/calibrations/does-not-exist/predict", inp["predict_hostile"], J,
                           label="100k x")
-            elif kind == "GET /measurements/{id}":
-                self.call(kind, "GET", f"/measurements/{self.pick(sh.sets)}")
-            elif kind == "GET /robots/{id}":
-                self.call(kind, "GET", f"/robots/{self.pick(sh.robots)}")
             elif kind == "GET /robots?limit=20":
                 self.call(kind, "GET", f"/robots?limit=20&offset={rng.randrange(0, max(1, len(sh.robots)))}")
         if self.conn is not None:

@@ -17,6 +17,7 @@ from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from benchmarks.accuracy import split_70_30  # noqa: E402
 from calib_core import datasets  # noqa: E402
 from calib_core.diagnose import diagnose  # noqa: E402
 from calib_core.identify import evaluate  # noqa: E402
@@ -31,12 +32,6 @@ SETS = {
 }
 
 
-def split(n: int, s: int) -> tuple[np.ndarray, np.ndarray]:
-    perm = np.random.default_rng(1000 + s).permutation(n)
-    k = int(round(0.7 * n))
-    return np.sort(perm[:k]), np.sort(perm[k:])
-
-
 def _named(f: dict) -> str:
     joints = ",".join(f["joints"])
     return f"{f['kind']}{' ' + joints if joints else ''}{' h' + str(f['harmonic']) if 'harmonic' in f else ''}"
@@ -46,7 +41,7 @@ def run(name: str, s: int) -> dict:
     ds = SETS[name]()
     model = parse_model(ds.model)
     meas = parse_measurements(ds.csv_text, model)
-    tr, te = split(meas.n_poses, s)
+    tr, te = split_70_30(meas.n_poses, 1000 + s)
     train, test = meas.subset(tr), meas.subset(te)
     d = diagnose(model, train)
     return {"set": name, "split": s, "n_train": len(tr), "n_test": len(te),

@@ -9,11 +9,15 @@ from calib_core.twin import sample_uniform
 from .chains import random_chain
 
 
+def _jacobian(model, q):
+    """The nominal point Jacobian at the poses q, one row per coordinate."""
+    x = K.nominal_vector(model)
+    return K.Chain(model, x, q).jacobian().reshape(-1, len(x))
+
+
 def _analyse(model, seed, n=120):
     q = sample_uniform(model, n, np.random.default_rng(seed))
-    x = K.nominal_vector(model)
-    J = K.Chain(model, x, q).jacobian().reshape(-1, len(x))
-    return analyse(J, K.parameter_names(model))
+    return analyse(_jacobian(model, q), K.parameter_names(model))
 
 
 def _expected_rank(model):
@@ -71,8 +75,7 @@ def test_poor_pose_set_has_worse_conditioning(seed):
     model = parse_model(spray7())
     rich = _analyse(model, seed)
     q = sample_uniform(model, 120, np.random.default_rng(seed), margin=0.45)  # all near mid-range
-    x = K.nominal_vector(model)
-    poor = analyse(K.Chain(model, x, q).jacobian().reshape(-1, len(x)), K.parameter_names(model))
+    poor = analyse(_jacobian(model, q), K.parameter_names(model))
     assert poor.condition_number > 5 * rich.condition_number
 
 
@@ -90,13 +93,12 @@ def test_assess_names_what_the_pose_set_lacks(seed):
     from calib_core.identifiability import assess
 
     model = parse_model(spray7())
-    x = K.nominal_vector(model)
     names = K.parameter_names(model)
     q = sample_uniform(model, 120, np.random.default_rng(seed))
-    full = assess(model, q, K.Chain(model, x, q).jacobian().reshape(-1, len(x)), names)
+    full = assess(model, q, _jacobian(model, q), names)
     assert full.complete and full.unidentifiable == [] and full.warnings() == []
     q[:, 3] = 0.2  # J4 frozen
-    poor = assess(model, q, K.Chain(model, x, q).jacobian().reshape(-1, len(x)), names)
+    poor = assess(model, q, _jacobian(model, q), names)
     d = poor.to_dict()
     assert d["frozen_joints"] == ["J4"] and not d["complete"] and d["unidentifiable"]
     assert len(d["unidentifiable"]) == 27 - d["rank"]

@@ -112,6 +112,13 @@ def _rpy(r, p, y):
                      [-sp, cp * sr, cp * cr]])
 
 
+def _hom(rpy, xyz) -> np.ndarray:
+    """The 4x4 of a URDF origin (rpy rad, xyz m)."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = _rpy(*rpy), xyz
+    return T
+
+
 def urdf_pose(text: str, link: str, q: dict[str, float], base: str | None = None) -> np.ndarray:
     """The 4x4 pose (m) of `link` in `base` (default: the root) from the URDF text alone."""
     root = ET.fromstring(text)
@@ -126,8 +133,7 @@ def urdf_pose(text: str, link: str, q: dict[str, float], base: str | None = None
         o = j.find("origin")
         xyz = [float(v) for v in (o.get("xyz", "0 0 0") if o is not None else "0 0 0").split()]
         rpy = [float(v) for v in (o.get("rpy", "0 0 0") if o is not None else "0 0 0").split()]
-        O = np.eye(4)
-        O[:3, :3], O[:3, 3] = _rpy(*rpy), xyz
+        O = _hom(rpy, xyz)
         M = np.eye(4)
         if j.get("type") != "fixed":
             ax = j.find("axis")
@@ -157,11 +163,7 @@ def model_frames(doc: dict, q: np.ndarray) -> list[np.ndarray]:
 def target_pose(doc: dict, q: np.ndarray) -> np.ndarray:
     """The target link's pose in the URDF base link: base (extension) @ MD-H chain @ tool frame (extension)."""
     e = doc["urdf"]
-    B = np.eye(4)
-    B[:3, :3], B[:3, 3] = _rpy(*e["base_rpy"]), e["base_xyz"]
-    C = np.eye(4)
-    C[:3, :3], C[:3, 3] = _rpy(*e["tool_rpy"]), doc["tool"]
-    return B @ model_frames(doc, q)[-1] @ C
+    return _hom(e["base_rpy"], e["base_xyz"]) @ model_frames(doc, q)[-1] @ _hom(e["tool_rpy"], doc["tool"])
 
 
 def random_q(doc: dict, n: int, seed: int = 0) -> np.ndarray:
@@ -185,9 +187,11 @@ def check_round_trip(text: str, base: str | None, target: str, n_joints: int, se
     u3 = to_urdf(m2)
     q = random_q(m1, 40, seed)
     names = [j["name"] for j in m1["joints"]]
+    truth_pts = []
     for qi in q:
         qd = dict(zip(names, qi))
         truth = urdf_pose(text, target, qd, base)  # the original URDF's own products
+        truth_pts.append(truth[:3, 3])
         for doc in (m1, m2):
             assert np.abs(target_pose(doc, qi) - truth).max() < 1e-9  # full frame
         for u in (u2, u3):  # the exported URDFs' own products: same target frame
@@ -195,9 +199,8 @@ def check_round_trip(text: str, base: str | None, target: str, n_joints: int, se
     # the production kinematics (mm internally) give the same point, in the MD-H base
     p1, p2 = production_fk(m1, q), production_fk(m2, q)
     assert np.abs(p1 - p2).max() < 1e-9
-    B = np.eye(4)
-    B[:3, :3], B[:3, 3] = _rpy(*m1["urdf"]["base_rpy"]), m1["urdf"]["base_xyz"]
-    truth_pts = np.array([urdf_pose(text, target, dict(zip(names, qi)), base)[:3, 3] for qi in q])
+    B = _hom(m1["urdf"]["base_rpy"], m1["urdf"]["base_xyz"])
+    truth_pts = np.array(truth_pts)
     assert np.abs((p1 @ B[:3, :3].T + B[:3, 3]) - truth_pts).max() < 1e-9
     return m1, m2
 
@@ -232,11 +235,10 @@ def test_masses_are_the_bodies_moved_by_each_joint():
     coms = {"carriage": [0.01, 0, 0.02], "forearm_link": [-0.196, 0, 0.0165], "forearm_sensor": [0, 0.01, 0],
             "wrist_3_link": [0, 0, -0.0229]}
     mass = {"carriage": 8.0, "forearm_link": 2.275, "forearm_sensor": 0.4, "wrist_3_link": 0.1879}
+    B = _hom(m["urdf"]["base_rpy"], m["urdf"]["base_xyz"])
     for qi in random_q(m, 5, 3):
         qd = dict(zip(names, qi))
         frames = model_frames(m, qi)
-        B = np.eye(4)
-        B[:3, :3], B[:3, 3] = _rpy(*m["urdf"]["base_rpy"]), m["urdf"]["base_xyz"]
         for jn, body in child.items():
             k = names.index(jn)
             got = (B @ frames[k] @ np.r_[m["joints"][k]["com"], 1.0])[:3]
