@@ -130,7 +130,7 @@ class Diagnosis:
 
     def model_error_mm(self, cal: Calibration) -> float:
         """De-noised model error: the root of held-out mean square distance minus the floor's (mm)."""
-        return float(np.sqrt(max(holdout_ms(cal) - self.noise_floor_mm**2, 0.0)))
+        return model_error_mm(cal, self.noise_floor_mm)
 
     def gaps(self) -> list[str]:
         """Parameters the model's structure identifies but this pose set cannot."""
@@ -213,6 +213,11 @@ def holdout_ms(cal: Calibration) -> float:
     return float(np.mean(cal.holdout_residual_mm[_inliers(cal)] ** 2))
 
 
+def model_error_mm(cal: Calibration, floor: float) -> float:
+    """De-noised model error (mm): the root of the held-out mean square distance minus the floor's."""
+    return float(np.sqrt(max(holdout_ms(cal) - floor**2, 0.0)))
+
+
 def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray):
     """Weighted residual (m,), orthonormal basis of the current model's Jacobian (m, r), and the chain."""
     model = cal.model
@@ -221,8 +226,6 @@ def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_
     r = (meas.points - chain.p - dp) / sigma[:, None]
     cols = [chain.jacobian()[:, :, cal.free]]
     if cal.effects:
-        from .identify import effect_bases
-
         Pq, Pp = effect_bases(model, meas, list(cal.effects), x_ref if cal.x_basis is None else cal.x_basis, cal.R0)
         cols.append(np.einsum("nij,njk->nik", chain.joint_jacobian(), Pq) + Pp)
     J = (np.concatenate(cols, axis=2) / sigma[:, None, None]).reshape(len(r.ravel()), -1)
@@ -340,6 +343,7 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
 
 
 PLAY_PASSES = 6
+"""Times the play's switch is classified again on the residual with the fitted play put back."""
 SATURATES = 1.5
 """A play with fitted softness must reach tanh(1.5) = 0.9 of its flanks somewhere, else it is a spring."""
 STIFFENING = (0.5, 1.5, 4.0, 12.0, 30.0)
@@ -348,7 +352,6 @@ REFINE_ALPHA = 0.01
 """A richer form replaces an accepted cause only on this stronger held-out evidence (it is more flexible)."""
 STEP_WINDOW = 8
 """Poses either side of a found step among which its exact place is sought."""
-"""Times the play's switch is classified again on the residual with the fitted play put back."""
 SOFT_PLAY = (0.002, 0.07, 0.15, 0.3, 0.5)
 """Transitions (share of the largest model load) of a sharper or a soft gear play, tried when a play on the
 model's statics is found (the default is 0.02); a play on the identified load has its softness fitted."""
@@ -450,8 +453,8 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
         if mine is None:
             continue
         thresholds = _thresholds(rest, alpha)
-        c, trial, alike = _best_of_lookalikes(mine, current, ranked, thresholds, model, fit, others, current.x,
-                                              share=0.5)
+        c, _, alike = _best_of_lookalikes(mine, current, ranked, thresholds, model, fit, others, current.x,
+                                          share=0.5)
         if c is not mine:
             chosen[k - 1] = c.effect
             current = fit(chosen, current.x)
@@ -486,8 +489,7 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
                       for p in params[:4])
     when = _when(e, meas) if meas is not None else ""
     p_gain, _ = holdout_gain(before, after)
-    mb = float(np.sqrt(max(holdout_ms(before) - floor**2, 0.0)))
-    ma = float(np.sqrt(max(holdout_ms(after) - floor**2, 0.0)))
+    mb, ma = model_error_mm(before, floor), model_error_mm(after, floor)
     evidence = (f"{e.explain(model)}{' ' + when if when else ''}: it explains {100 * c.explained:.0f} % of the "
                 f"remaining residual (F = {c.F:.1f}, p = {c.p_value:.1e}); on held-out poses the error drops "
                 f"{hb:.3f} -> {ha:.3f} mm (paired p = {p_gain:.1e}) and the model error beyond the noise floor "
@@ -676,14 +678,15 @@ def _play_not_outliers(first: Calibration, meas: Measurements) -> bool:
     for j in range(model.n_joints):
         sign = np.sign(loads[:, j])
         minority = sign == (1.0 if (sign > 0).sum() < (sign < 0).sum() else -1.0)
-        both = np.isin(out, np.flatnonzero(minority)).sum()  # flagged poses on the minority side of the load
+        flagged = out[np.isin(out, np.flatnonzero(minority))]  # flagged poses on the minority side of the load
+        both = len(flagged)
         if not 0 < minority.sum() <= 0.25 * meas.n_poses or both < 0.5 * len(out) or both < 0.5 * minority.sum():
             continue
         play = Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * np.abs(loads[:, j]).max()))
         with_play = identify(model, meas, effects=(play,), folds=0, x_ref=first.x)  # plain: the play must fit them
         d = np.linalg.norm(with_play.solution.residual, axis=1)
         u = d / np.sqrt(np.median(d**2) / 2.366)  # in robust sigmas of a 3-D residual (median chi2(3) = 2.366)
-        if np.all(u[out[np.isin(out, np.flatnonzero(minority))]] < OUTLIER_U):
+        if np.all(u[flagged] < OUTLIER_U):
             return True
     return False
 
@@ -829,11 +832,12 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             break
     if chosen:  # one last joint fit with every basis on the final geometry
         current = fit(current.effects, current.x)
-    if unexplained and _excess(current, floor) < alpha:
+    structure_left = _excess(current, floor) < alpha
+    if unexplained and structure_left:
         report(0.85, "looking at what the residual left follows")
         follows = _follows(current, meas, sigma, x_ref, alpha, load_pool)
-        ratio = np.sqrt(holdout_ms(current)) / floor
-        if follows or basis != "assumed" or ratio > NOISE_LIKE:
+        held_out_rms = np.sqrt(holdout_ms(current))
+        if follows or basis != "assumed" or held_out_rms / floor > NOISE_LIKE:
             trial = None
             fitted = fit_residual_field(fit, current, chosen, x_ref)
             if fitted is not None:
@@ -845,16 +849,17 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             if trial is not None:
                 current = trial[0]
         else:
-            new_floor = float(np.sqrt(holdout_ms(current)))
+            new_floor = float(held_out_rms)
             notes.append(f"the residual ({new_floor:.3f} mm RMS held out) is above the assumed noise floor "
                          f"({floor:.3f} mm) but follows nothing: not time order, no joint, not the load, no region "
                          f"of the workspace; it looks like noise, so the robot's repeatability (or the instrument's "
                          f"noise) is probably worse than assumed. Measure some poses twice to know the floor.")
             note = f"estimated from the structure-free held-out residual (assumed floor was {floor:.3f} mm)"
             floor, basis = new_floor, "residual"
-    if _excess(current, floor) < alpha:  # structure left beyond the floor: predictions carry it in their std
+        structure_left = _excess(current, floor) < alpha  # current or floor has changed
+    if structure_left:  # structure left beyond the floor: predictions carry it in their std
         current.unmodelled_mm = float(np.sqrt(max(holdout_ms(current) - floor**2, 0.0) / 3.0))
-    nominal = next((c for label, c in selection.calibrations.items() if label == "registration"), None) \
+    nominal = selection.calibrations.get("registration") \
         or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
     d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,
                   floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss,
@@ -868,8 +873,8 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
     """The `unexplained` entry: how far above the floor, what the residual follows, what a smooth field gains."""
     hb = before.metrics()["holdout_rms_mm"]
     ha = trial[0].metrics()["holdout_rms_mm"] if trial else hb
-    mb = float(np.sqrt(max(holdout_ms(before) - floor**2, 0.0)))
-    ma = float(np.sqrt(max(holdout_ms(trial[0]) - floor**2, 0.0))) if trial else mb
+    mb = model_error_mm(before, floor)
+    ma = model_error_mm(trial[0], floor) if trial else mb
     if follows:
         what = "it follows " + "; ".join(f"{f['what']} (explains {f['share_pct']:.0f} %, p = {f['p_value']:.1e})"
                                          for f in follows[:3])

@@ -411,6 +411,17 @@ def identify(
     if 3 * meas.n_poses <= len(idx) + n_eff:
         raise ValueError(f"{meas.n_poses} poses give {3 * meas.n_poses} equations for {len(idx) + n_eff} "
                          "parameters; measure more poses")
+    return _calibrate(model, meas, sigma, x0, R0, ident, idx, effects=effects, loss=loss, regularize=regularize,
+                      folds=folds, x_ref=x_ref, prior_scale=prior_scale)[0]
+
+
+def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None, regularize=True, folds=5,
+               x_ref=None, prior_scale=1.0, start=None, evals: ChainEvaluations | None = None
+               ) -> tuple[Calibration, Solution]:
+    """identify() once the pose set is checked, pre-aligned and analysed: the fit weighted by the noise, again
+    with the model error added to the weights, and the cross-validation. Also returns the first fit (noise
+    weights alone). `start` (first fit) and memoised `evals` (geometric fits) let callers that fit one pose
+    set many times share work (select.py)."""
     bases = None
     if effects:
         if x_ref is None:
@@ -419,13 +430,13 @@ def identify(
             x_ref[idx] = geo.x
         bases = effect_bases(model, meas, effects, x_ref, R0)
     eprior = _effect_prior(model, effects)
-    sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, prior_scale=prior_scale)
+    fit = dict(prior_scale=prior_scale, evals=evals)
+    first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, **fit)
     sigma0_measurement = float(np.sqrt(sol.s2))
     s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
     if s_model > 0.0:  # weight by measurement noise plus what the model leaves, then solve again
         sigma = np.sqrt(sigma**2 + s_model**2)
-        sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x,
-                   prior_scale=prior_scale)
+        sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x, **fit)
     x = x0.copy()
     x[idx] = sol.x[: len(idx)]
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
@@ -434,8 +445,8 @@ def identify(
                       x_basis=x_ref if effects else None, noise_model=meas.noise_source())
     if folds > 1 and meas.n_poses >= 2 * folds:
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
-                                                 eprior, prior_scale=prior_scale, start=sol.x)
-    return cal
+                                                 eprior, prior_scale=prior_scale, start=sol.x, evals=evals)
+    return cal, first
 
 
 def fold_ids(n_poses: int, folds: int) -> np.ndarray:

@@ -15,8 +15,8 @@ from datetime import datetime, timezone
 import numpy as np
 
 from .instruments import INSTRUMENTS, instrument
-from .model import (ANGLE_TO_RAD, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM, MAX_REVOLUTE_DEG, SIGMA_RANGE_MM,
-                    TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC, RobotModel)
+from .model import (LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM, SIGMA_RANGE_MM, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S,
+                    TIMESTAMP_RANGE_UTC, RobotModel, revolute_bound)
 
 OPTIONAL = ("point", "timestamp", "temperature", "payload", "sigma")
 MAX_LISTED_ERRORS = 1000
@@ -116,9 +116,9 @@ MAX_FIELD_CHARS = 131072
 
 def parse_number(raw: str) -> tuple[float | None, str | None]:
     """(value, None) for a plain finite decimal number, else (None, why in plain words)."""
-    if NOT_FINITE.fullmatch(raw):
-        return None, "must be finite (no NaN or inf)"
     if not NUMBER.fullmatch(raw):
+        if NOT_FINITE.fullmatch(raw):
+            return None, "must be finite (no NaN or inf)"
         if len(raw) <= 64 and not raw.isascii() and all(c.isdigit() or c in "+-.eE_" for c in raw):
             return None, "not a number: write digits 0-9 only"
         if len(raw) <= 64 and "_" in raw:
@@ -240,8 +240,11 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
     js = model.joint_scale()
     lo = model.limits[:, 0] / js
     hi = model.limits[:, 1] / js
+    span = hi - lo
+    slack = np.where(np.isfinite(span), LIMIT_TOL * np.maximum(1.0, np.abs(span)), 0.0)
+    inside = list(zip((lo - slack).tolist(), (hi + slack).tolist()))  # per joint: the limits with their slack
     ls = LENGTH_TO_MM[model.length_unit]
-    rev_max = MAX_REVOLUTE_DEG * ANGLE_TO_RAD["deg"] / ANGLE_TO_RAD[model.angle_unit]
+    rev_max = revolute_bound(model.angle_unit)
     point_max = MAX_POINT_MM / ls
     sig_lo, sig_hi = SIGMA_RANGE_MM[0] / ls, SIGMA_RANGE_MM[1] / ls
     t_lo, t_hi = TEMPERATURE_RANGE_C
@@ -257,17 +260,15 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
         if len(fields) != len(header):
             err(line, None, len(fields), f"expected {len(header)} fields like the header, found {len(fields)}")
             continue
-        for c in numeric:
+        for j, c in enumerate(numeric):  # the joints come first: j < n_joints is a joint's index
             raw = fields[col[c]].strip()
             v, why = parse_number(raw)
             if why:
                 err(line, c, raw, why)
                 continue
             values[c][i] = v
-            if c in model.joint_names:
-                j = model.joint_names.index(c)
-                slack = LIMIT_TOL * max(1.0, abs(hi[j] - lo[j])) if math.isfinite(hi[j] - lo[j]) else 0.0
-                outside = not lo[j] - slack <= v <= hi[j] + slack
+            if j < model.n_joints:
+                outside = not inside[j][0] <= v <= inside[j][1]
                 if outside and limits == "reject":
                     err(line, c, raw, f"outside the joint limits [{lo[j]:g}, {hi[j]:g}] {model.joint_unit(j)}")
                 elif not model.prismatic[j] and not abs(v) <= rev_max:

@@ -63,6 +63,11 @@ def length_text(mm: float, unit: str) -> str:
     return f"{mm / LENGTH_TO_MM.get(unit, 1.0):g} {unit if unit in LENGTH_TO_MM else 'mm'}"
 
 
+def revolute_bound(angle_unit: str) -> float:
+    """MAX_REVOLUTE_DEG (100 turns) in `angle_unit`: the largest |value| of a revolute joint."""
+    return MAX_REVOLUTE_DEG * ANGLE_TO_RAD["deg"] / ANGLE_TO_RAD[angle_unit]
+
+
 def angle_text(deg: float, unit: str) -> str:
     return f"{deg:g} deg" if unit != "rad" else f"{math.radians(deg):.6g} rad"
 
@@ -267,9 +272,10 @@ def parse_model(doc: dict) -> RobotModel:
         errors.append({"field": "units.angle", "value": au, "message": "unknown angle unit; use 'deg' or 'rad'"})
         au = "deg"
     ls, an = LENGTH_TO_MM[lu], ANGLE_TO_RAD[au]
-    len_max = length_text(MAX_LENGTH_MM, lu)
-    ang_max = angle_text(MAX_MODEL_ANGLE_DEG, au)
-    rev_max = angle_text(MAX_REVOLUTE_DEG, au)
+    # each plausibility bound in the document's units, and in words for the messages
+    len_bound, len_max = MAX_LENGTH_MM / ls, length_text(MAX_LENGTH_MM, lu)
+    ang_bound, ang_max = MAX_MODEL_ANGLE_DEG * ANGLE_TO_RAD["deg"] / an, angle_text(MAX_MODEL_ANGLE_DEG, au)
+    rev_bound, rev_max = revolute_bound(au), angle_text(MAX_REVOLUTE_DEG, au)
 
     joints = doc.get("joints")
     if not isinstance(joints, list) or not joints:
@@ -304,9 +310,9 @@ def parse_model(doc: dict) -> RobotModel:
                 continue
             v = _finite_number(errors, f"{where}.{p}", jd.get(p, 0.0))
             if p in ANGULAR:
-                v = _in_range(errors, f"{where}.{p}", v, MAX_MODEL_ANGLE_DEG * (math.pi / 180.0) / an, ang_max)
+                v = _in_range(errors, f"{where}.{p}", v, ang_bound, ang_max)
             else:
-                v = _in_range(errors, f"{where}.{p}", v, MAX_LENGTH_MM / ls, len_max)
+                v = _in_range(errors, f"{where}.{p}", v, len_bound, len_max)
             row.append(0.0 if v is None else v * (an if p in ANGULAR else ls))
         rows.append(row)
         lim = jd.get("limits")
@@ -319,9 +325,9 @@ def parse_model(doc: dict) -> RobotModel:
             limits.append(lim)
         else:
             if jtype == "prismatic":
-                lv = _vector(errors, f"{where}.limits", lim, 2, MAX_LENGTH_MM / ls, len_max)
+                lv = _vector(errors, f"{where}.limits", lim, 2, len_bound, len_max)
             else:
-                lv = _vector(errors, f"{where}.limits", lim, 2, MAX_REVOLUTE_DEG * (math.pi / 180.0) / an,
+                lv = _vector(errors, f"{where}.limits", lim, 2, rev_bound,
                              rev_max + " (100 turns; leave limits out for an unlimited joint)")
             if lv is not None and lv[0] >= lv[1]:
                 errors.append({"field": f"{where}.limits", "value": lim,
@@ -332,13 +338,13 @@ def parse_model(doc: dict) -> RobotModel:
             if m is not None and not 0 <= m <= MAX_MASS_KG:
                 errors.append({"field": f"{where}.mass", "value": m,
                                "message": f"mass must be between 0 and {MAX_MASS_KG:g} kg"})
-            c = _vector(errors, f"{where}.com", jd.get("com", [0.0, 0.0, 0.0]), 3, MAX_LENGTH_MM / ls, len_max)
+            c = _vector(errors, f"{where}.com", jd.get("com", [0.0, 0.0, 0.0]), 3, len_bound, len_max)
             masses.append(m)
             coms.append(None if c is None else c * ls)
         else:
             masses.append(None)
             coms.append(None)
-    tool = _vector(errors, "tool", doc.get("tool", [0.0, 0.0, 0.0]), 3, MAX_LENGTH_MM / ls, len_max)
+    tool = _vector(errors, "tool", doc.get("tool", [0.0, 0.0, 0.0]), 3, len_bound, len_max)
     gravity = _vector(errors, "gravity", doc.get("gravity", [0.0, 0.0, -9.81]))
     if gravity is not None and not float(np.linalg.norm(gravity)) <= MAX_GRAVITY_MS2:
         errors.append({"field": "gravity", "value": doc.get("gravity"),

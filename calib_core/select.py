@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import kinematics as K
-from .identify import (DISTINCT_DECIMALS, Calibration, ChainEvaluations, _fit, _select, assess, cross_validate,
-                       fold_ids, identify, model_error_sigma, prealign)
+from .identify import (DISTINCT_DECIMALS, Calibration, ChainEvaluations, _calibrate, _select, assess, fold_ids,
+                       identify, prealign)
 from .io import Measurements
 from .model import RobotModel
 
@@ -103,24 +103,11 @@ class _Shared:
         model, meas = self.model, self.meas
         if self.ident is None or 3 * meas.n_poses <= len(idx):  # refused: identify() says why
             return identify(model, meas, free=free, loss=loss, folds=folds, prior_scale=prior_scale)
-        x0, R0, sigma = self.x0, self.R0, self.sigma
-        fit = dict(prior_scale=prior_scale, evals=self.evals)
-        sol = _fit(model, meas, sigma, x0, R0, idx, loss, True, start=None if start is None else start[idx], **fit)
-        self.last_fit = x0.copy()
-        self.last_fit[idx] = sol.x
-        sigma0_measurement = float(np.sqrt(sol.s2))
-        s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
-        if s_model > 0.0:
-            sigma = np.sqrt(sigma**2 + s_model**2)
-            sol = _fit(model, meas, sigma, x0, R0, idx, loss, True, start=sol.x, **fit)
-        x = x0.copy()
-        x[idx] = sol.x
-        cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=self.ident,
-                          point_ids=list(meas.point_ids), sigma_mm=sigma, model_error_mm=s_model,
-                          sigma0_measurement=sigma0_measurement, prior_scale=prior_scale,
-                          noise_model=meas.noise_source())
-        cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, True, folds,
-                                                 prior_scale=prior_scale, start=sol.x, evals=self.evals)
+        cal, first = _calibrate(model, meas, self.sigma, self.x0, self.R0, self.ident, idx, loss=loss, folds=folds,
+                                prior_scale=prior_scale, start=None if start is None else start[idx],
+                                evals=self.evals)
+        self.last_fit = self.x0.copy()
+        self.last_fit[idx] = first.x
         return cal
 
 

@@ -168,12 +168,6 @@ def _scaled(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return H * S[:, None] * S[None, :], S
 
 
-def covariance(A: np.ndarray, lam_diag: np.ndarray, s2: float, sandwich: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Covariance of the (regularised) least-squares estimate and the mask of undetermined parameters."""
-    cov, undetermined, _ = _covariance(A, lam_diag, sandwich)
-    return s2 * cov, undetermined
-
-
 def _covariance(A: np.ndarray, lam_diag: np.ndarray, sandwich: bool = True) -> tuple[np.ndarray, np.ndarray, int]:
     """Covariance per unit variance factor, the mask of undetermined parameters, and the rank.
 

@@ -42,7 +42,8 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from .frames import Link, fold_links, rot_x, rot_y, rot_z, trans
+from .frames import Link, fold_links, mdh_transform, rot_x, rot_y, rot_z
+from .io import NUMBER
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, MAX_LENGTH_MM, ModelError, RobotModel, parse_model
 
 CONTINUOUS_LIMIT_RAD = 2.0 * math.pi
@@ -62,7 +63,6 @@ EXTENSION = "urdf"
 """The model-JSON key of the URDF extension object."""
 
 _DOCTYPE = re.compile(r"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
-_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 
 
 class UrdfError(ModelError):
@@ -143,7 +143,7 @@ def _numbers(errors, el, attr, where, n, default):
     parts = text.split()
     out = []
     for p in parts:
-        v = float(p) if _NUMBER.fullmatch(p) and p.isascii() else math.nan
+        v = float(p) if NUMBER.fullmatch(p) else math.nan
         if not math.isfinite(v):
             errors.append({"field": f"{where}/@{attr}", "value": text[:80],
                            "message": f"{p[:40]!r} is not a finite number"})
@@ -601,7 +601,7 @@ def to_urdf(model, name: str | None = None) -> str:
     joint_names: set[str] = set()
     for j, jn in enumerate(m.joint_names):
         a, alpha, d, theta, beta = (float(v) for v in geometry[j])
-        T = rot_x(alpha) @ trans(a) @ rot_z(theta) @ trans(z=d)
+        T = mdh_transform(a, alpha, d, theta)  # Ry(beta) follows as a fixed joint of its own
         lo, hi = (float(v) for v in m.limits[j])
         info = extra.get(jn) if isinstance(extra.get(jn), dict) else {}
         eff = f' effort="{_f(info.get("effort", 0.0))}" velocity="{_f(info.get("velocity", 0.0))}"'
