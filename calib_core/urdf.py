@@ -489,9 +489,15 @@ def calibrated_model_dict(model: RobotModel, state: dict, source: dict | None = 
     doc["calibration"] = {
         "base_pose": {"position": [float(v / ls) for v in x[5 * n: 5 * n + 3]], "rotation_matrix": Rb.tolist(),
                       "frame": "the robot's MD-H base frame in the measurement frame"},
-        "effects": [{"kind": e.get("kind"), "joints": list(e.get("joints", []))} for e in state.get("effects", [])],
+        "effects": [{"kind": e.get("kind"), "joints": [_joint_name(model, j) for j in e.get("joints", [])]}
+                    for e in state.get("effects", [])],
     }
     return doc
+
+
+def _joint_name(model: RobotModel, j) -> str:
+    """An effect's joint as the model names it (effect states store positions)."""
+    return model.joint_names[j] if isinstance(j, (int, np.integer)) else str(j)
 
 
 def _f(v: float) -> str:

@@ -327,7 +327,8 @@ def test_calibrated_export_lists_effects():
     x[5 * 2 + 4] += 0.005  # the elbow axis tilted by 5 mrad (beta) off its parallel neighbour: Hayati, no far normal
     x[5 * 4 + 2] += 0.002  # and a length
     state = {"x": x.tolist(), "R0": np.eye(3).tolist(),
-             "effects": [{"kind": "joint_compliance", "joints": ["shoulder_lift_joint"], "values": [1e-6]}]}
+             "effects": [{"kind": "joint_compliance", "joints": [model.joint_names.index("shoulder_lift_joint")],
+                          "values": [1e-6]}]}  # effect states store joint positions
     cal = calibrated_model_dict(model, state, m)
     assert cal["urdf"] == m["urdf"] and cal["calibration"]["effects"][0]["kind"] == "joint_compliance"
     text = to_urdf(cal)
