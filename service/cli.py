@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
                           "calibration, diagnosis, validation, compensation, report",
                           description="Starts `calib serve` on the configured database (default sqlite:///./calib.db), "
                           "uploads a measurement campaign over REST, runs the auto calibration and tells the story.")
-    demo.add_argument("--effect", choices=[*HIDDEN_KINDS, "none"],
+    demo.add_argument("--effect", choices=[*HIDDEN_KINDS, "none"],  # demo.EFFECTS (not imported: numpy)
                       help="the effect the simulated robot hides (default: drawn at random)")
     demo.add_argument("--seed", type=int, help="seed of the simulated robot (default: random, printed), "
                       "or of the validation split with --data (default 0)")

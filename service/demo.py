@@ -31,15 +31,14 @@ from calib_core.identify import evaluate, identify
 from calib_core.io import MeasurementError, Measurements, parse_measurements, write_measurements
 from calib_core.model import LENGTH_TO_MM, ModelError, RobotModel, parse_model
 
+from .cli import HIDDEN_KINDS
 from .config import Settings
 
 N_CAL, N_VAL = 150, 100
 HOLDOUT_FRACTION = 0.3
 SIZE_RANGE = (4.0, 10.0)
 """A drawn hidden cause's part no geometric parameter can absorb is this many times the noise RMS."""
-EFFECTS = ("joint_spring", "stiffening_spring", "hard_backlash", "soft_backlash", "gear_error", "encoder_scale",
-           "rail_straightness", "cantilever", "telescopic_bending", "thermal_growth", "base_tilt", "rehoming_step",
-           "cable_force", "none")
+EFFECTS = (*HIDDEN_KINDS, "none")
 """`--effect`: the world's kinds (calib_world.KINDS, checked by the tests) and none."""
 WIDTH = 100
 

@@ -13,17 +13,21 @@ from __future__ import annotations
 
 import base64
 import binascii
+import functools
 import hashlib
 import hmac
-from typing import Iterable, Iterator
+import inspect
+from typing import Any, Callable, Iterable, Iterator
 
 from fastapi import Depends, Request
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from .config import Settings
 from .db import Database
+from .limits import header
 from .problems import ProblemError, problem_response
 
 bearer = HTTPBearer(auto_error=False, description="Needed on every call but /health when the server sets "
@@ -41,7 +45,7 @@ class ConfigurationError(SystemExit):
 def check_token_setting(settings: Settings) -> None:
     """Refuse CALIB_API_TOKEN set to nothing (or white space): it would silently switch authentication off."""
     token = settings.api_token
-    if (token is None and getattr(settings, "api_token_set", False)) or (token is not None and not token.strip()):
+    if (token is None and settings.api_token_set) or (token is not None and not token.strip()):
         raise ConfigurationError("calib: CALIB_API_TOKEN is set but empty: refusing to start without the "
                                  "authentication it asks for. Set it to a token, or unset it (unset, the API "
                                  "asks for no token).")
@@ -73,13 +77,6 @@ def token_matches(authorization: bytes | None, token: str) -> bool:
     return hmac.compare_digest(_digest(given), _digest(token.encode("utf-8")))
 
 
-def _authorization(headers: Iterable[tuple[bytes, bytes]]) -> bytes | None:
-    for k, v in headers:
-        if k == b"authorization":
-            return v
-    return None
-
-
 def unauthorized(request: Request | None):
     return problem_response(request, 401, AUTH_DETAIL, kind="unauthorized",
                             headers={"WWW-Authenticate": AUTH_CHALLENGE})
@@ -93,7 +90,7 @@ class TokenAuthMiddleware:
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if (self.token is None or scope["type"] != "http" or scope["path"] in self.open_paths
-                or token_matches(_authorization(scope.get("headers", ())), self.token)):
+                or token_matches(header(scope, b"authorization"), self.token)):
             await self.app(scope, receive, send)
             return
         await unauthorized(Request(scope))(scope, receive, send)
@@ -107,17 +104,46 @@ def get_db(request: Request) -> Database:
     return request.app.state.db
 
 
+_COMMIT_IN_ENDPOINT = "calib_commit_in_endpoint"  # in Session.info: get_session's, committed by WriteRoute
+
+
 def get_session(db: Database = Depends(get_db)) -> Iterator[Session]:
     """One write transaction per request. Routes use it with scope="function", so the commit happens
     before the response is sent: a 201/202 is only ever answered for data that is durably stored.
 
-    Routes also commit themselves before they return: FastAPI validates a sync route's response model in the
-    shared thread pool before it closes function-scoped dependencies, so a commit left to this exit holds the
-    SQLite write lock (BEGIN IMMEDIATE) while waiting for a pool thread; under load every pool thread can be a
-    writer waiting for that lock (busy timeout 30 s): no thread ever frees up, and the waiters end in 503s
-    (the red-team load, benchmarks/bench_redteam.py). Errors still roll back here."""
+    On a `WriteRoute` the commit happens in the endpoint's own thread as soon as it returns, not at this
+    dependency's exit: FastAPI validates a sync route's response model in the shared thread pool before it
+    closes function-scoped dependencies, so a commit left to this exit holds the SQLite write lock (BEGIN
+    IMMEDIATE) while waiting for a pool thread; under load every pool thread can be a writer waiting for that
+    lock (busy timeout 30 s): no thread ever frees up, and the waiters end in 503s (the red-team load,
+    benchmarks/bench_redteam.py). Errors still roll back here."""
     with db.session() as s:
+        s.info[_COMMIT_IN_ENDPOINT] = True
         yield s
+
+
+def _committing(endpoint: Callable[..., Any]) -> Callable[..., Any]:
+    """`endpoint`, committing its `get_session` session in the same thread once it has returned."""
+    if inspect.iscoroutinefunction(endpoint):
+        return endpoint
+
+    @functools.wraps(endpoint)  # FastAPI reads the signature (and annotations) of the wrapped endpoint
+    def call(**kwargs: Any) -> Any:
+        out = endpoint(**kwargs)
+        for v in kwargs.values():
+            if isinstance(v, Session) and v.info.get(_COMMIT_IN_ENDPOINT):
+                v.commit()
+        return out
+
+    return call
+
+
+class WriteRoute(APIRoute):
+    """The route class of routers whose routes write through `get_session`: the session is committed right
+    after the endpoint returns, in its thread (see get_session)."""
+
+    def __init__(self, path: str, endpoint: Callable[..., Any], **kwargs: Any) -> None:
+        super().__init__(path, _committing(endpoint), **kwargs)
 
 
 def get_read_session(db: Database = Depends(get_db)) -> Iterator[Session]:
@@ -130,5 +156,5 @@ def require_writer(request: Request, settings: Settings = Depends(get_settings),
     """The writing routes' own check (TokenAuthMiddleware already gates every call); documents the scheme."""
     if settings.api_token is None:
         return
-    if not token_matches(_authorization(request.scope.get("headers", ())), settings.api_token):
+    if not token_matches(header(request.scope, b"authorization"), settings.api_token):
         raise ProblemError(401, AUTH_DETAIL, kind="unauthorized", headers={"WWW-Authenticate": AUTH_CHALLENGE})

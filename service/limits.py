@@ -36,7 +36,8 @@ MIN_DRAIN_BYTES = 64 * 1024 * 1024
 CLOSE = (b"connection", b"close")
 
 
-def _header(scope: Scope, name: bytes) -> bytes | None:
+def header(scope: Scope, name: bytes) -> bytes | None:
+    """The first value of a request header (`name` in lower case), as sent."""
     for k, v in scope.get("headers", ()):
         if k == name:
             return v
@@ -58,13 +59,13 @@ class BodyLimitMiddleware:
             await self.app(scope, receive, send)
             return
         limit = self.max_bytes
-        cl = _header(scope, b"content-length")
+        cl = header(scope, b"content-length")
         try:
             declared = int(cl) if cl is not None else None
         except ValueError:
             declared = None  # the server rejects it before we run
-        chunked = b"chunked" in (_header(scope, b"transfer-encoding") or b"").lower()
-        waits_for_continue = (_header(scope, b"expect") or b"").lower() == b"100-continue"
+        chunked = b"chunked" in (header(scope, b"transfer-encoding") or b"").lower()
+        waits_for_continue = (header(scope, b"expect") or b"").lower() == b"100-continue"
         state = {"seen": 0, "done": not (chunked or (declared or 0) > 0), "asked": False}
 
         async def drain() -> bool:

@@ -1,7 +1,6 @@
 """RFC 9457 problem documents: every error the API returns is application/problem+json."""
 from __future__ import annotations
 
-import json
 import logging
 import math
 from http import HTTPStatus

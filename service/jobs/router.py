@@ -3,12 +3,12 @@ from __future__ import annotations
 from fastapi import APIRouter, Body, Depends, Response
 from sqlalchemy.orm import Session
 
-from ..deps import get_read_session, get_session, get_settings, require_writer
+from ..deps import WriteRoute, get_read_session, get_session, get_settings, require_writer
 from ..problems import problem_responses
 from . import service
 from .schemas import JobIn, JobOut
 
-router = APIRouter(tags=["jobs"])
+router = APIRouter(tags=["jobs"], route_class=WriteRoute)
 
 
 @router.post("/jobs", status_code=202, response_model=JobOut, dependencies=[Depends(require_writer)],
@@ -22,9 +22,7 @@ def create_job(response: Response, body: JobIn = Body(..., openapi_examples={
     """The job is durable once this answers 202 (same transaction); poll `Location`."""
     j = service.enqueue(s, body.measurement_set_id, body.model, settings.max_attempts)
     response.headers["Location"] = f"/jobs/{j.id}"
-    out = JobOut.of(j)
-    s.commit()  # now, not at the dependency's exit: see deps.get_session
-    return out
+    return JobOut.of(j)
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, responses=problem_responses(404),
@@ -41,17 +39,9 @@ job again answers it unchanged; a job that already succeeded or failed is a 409.
 @router.post("/jobs/{job_id}/cancel", response_model=JobOut, dependencies=[Depends(require_writer)],
              responses=problem_responses(401, 404, 409), summary="Cancel a queued or running job",
              description=_CANCEL_DOC)
-def cancel_job(job_id: str, s: Session = Depends(get_session, scope="function")) -> JobOut:
-    out = JobOut.of(service.cancel(s, job_id))
-    s.commit()  # see deps.get_session
-    return out
-
-
 @router.delete("/jobs/{job_id}", response_model=JobOut, dependencies=[Depends(require_writer)],
-               responses=problem_responses(401, 404, 409),
+               responses=problem_responses(401, 404, 409), name="delete_job",
                summary="Cancel a queued or running job (same as POST /jobs/{id}/cancel; the record stays)",
                description=_CANCEL_DOC)
-def delete_job(job_id: str, s: Session = Depends(get_session, scope="function")) -> JobOut:
-    out = JobOut.of(service.cancel(s, job_id))
-    s.commit()  # see deps.get_session
-    return out
+def cancel_job(job_id: str, s: Session = Depends(get_session, scope="function")) -> JobOut:
+    return JobOut.of(service.cancel(s, job_id))

@@ -121,15 +121,13 @@ def run_job(job_id: str, mode: str, model_json: dict, raw: bytes, delay_s: float
 
 def warm_up() -> None:
     """What the first job would otherwise pay: imports, numpy/scipy first calls, matplotlib's font cache."""
-    import calib_core  # noqa: F401
     from calib_core import Twin, write_measurements
+    from calib_core.identify import identify
     from calib_core.io import parse_measurements
     from calib_core.model import parse_model
     from calib_core.robots import spray7
 
     from ..report import plots
-
-    from calib_core.identify import identify
 
     model = parse_model(spray7())
     meas = parse_measurements(write_measurements(Twin(model, 0).measure(n=24), model).encode(), model)

@@ -57,7 +57,6 @@ class Slot:
     index: int
     proc: mp.process.BaseProcess
     conn: object  # multiprocessing Connection
-    started: float  # monotonic, when the process was started
     ready: bool = False
     retiring: bool = False  # it said it will exit after its job (out of memory): no new job for it
     job: store.Claimed | None = None
@@ -85,6 +84,8 @@ class Worker:
         self._start_failures: dict[int, int] = {}
         self._listener: notify.PgListener | None = None
         self._t0 = time.monotonic()
+        self._freed = True  # a slot became free or ready: try to claim without waiting for the poll
+        self._claim_at = float("inf")  # monotonic: a job this worker re-queued becomes claimable
 
     # -- job processes ------------------------------------------------------------------------------------
     def _spawn(self, index: int) -> Slot:
@@ -93,7 +94,7 @@ class Worker:
                               args=(child, os.getpid(), self.settings.warm_pool, self.settings.test_poison))
         p.start()
         child.close()
-        return Slot(index, p, parent, started=time.monotonic())
+        return Slot(index, p, parent)
 
     def _kill(self, slot: Slot) -> None:
         try:
@@ -306,9 +307,6 @@ class Worker:
                 mp_wait([self.waker] + [x.conn for x in live] + [x.proc.sentinel for x in live], timeout)
         finally:
             self._shutdown()
-
-    _freed = True  # a slot became free or ready: try to claim without waiting for the poll
-    _claim_at = float("inf")  # monotonic: a job this worker re-queued becomes claimable
 
     def _next_wake(self, t: float, next_poll: float, next_reap: float) -> float:
         """Seconds until the loop has something to do that no pipe, exit or wake-up will announce."""

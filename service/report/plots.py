@@ -69,7 +69,10 @@ def png(answer: dict, name: str, cache_key: str | None = None) -> bytes:
 
 
 def _render(answer: dict, name: str) -> bytes:
-    fig = figure(answer, name)
+    return _png_bytes(figure(answer, name))
+
+
+def _png_bytes(fig: Figure) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", metadata={"Software": None})
     return buf.getvalue()
@@ -81,9 +84,7 @@ def error_png(name: str, why: str) -> bytes:
     FigureCanvasAgg(fig)
     fig.text(0.5, 0.5, _tx(f"the plot {name!r} could not be drawn:\n{why}"[:400]), ha="center", va="center",
              wrap=True, fontsize=9, color=RESID)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", metadata={"Software": None})
-    return buf.getvalue()
+    return _png_bytes(fig)
 
 
 def figure(answer: dict, name: str) -> Figure:

@@ -3,21 +3,20 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, Body, Depends, Query, Request, Response
-from fastapi.routing import APIRoute
 from starlette.routing import Match
 from sqlalchemy.orm import Session
 
-from ..deps import get_read_session, get_session, require_writer
+from ..deps import WriteRoute, get_read_session, get_session, require_writer
 from ..problems import problem_responses
 from . import service
 from .schemas import SPRAY7_EXAMPLE, RobotOut
 
-router = APIRouter(tags=["robots"])
+router = APIRouter(tags=["robots"], route_class=WriteRoute)
 
 XML_TYPES = (b"application/xml", b"text/xml", b"application/urdf+xml")
 
 
-class XmlBodyRoute(APIRoute):
+class XmlBodyRoute(WriteRoute):
     """Matches only requests whose Content-Type is XML, so `POST /robots` with a URDF reaches its own handler
     and every JSON request the contract's route below, unchanged."""
 
@@ -46,9 +45,7 @@ def create_robot_urdf(response: Response, body: bytes = Depends(_raw_body),
     as contract model JSON (with its `urdf` extension object), validated like a JSON upload."""
     r = service.create_robot_from_urdf(s, body, base, targets, length_unit, angle_unit)
     response.headers["Location"] = f"/robots/{r.id}"
-    out = RobotOut.of(r)
-    s.commit()  # see deps.get_session
-    return out
+    return RobotOut.of(r)
 
 
 # registered before the JSON route of the same path: XmlBodyRoute lets every non-XML request through to it
@@ -68,9 +65,7 @@ def create_robot(response: Response, doc: dict[str, Any] = Body(..., openapi_exa
     optional `length_unit=m|mm`, `angle_unit=rad|deg`), stored as the model JSON it converts to."""
     r = service.create_robot(s, doc)
     response.headers["Location"] = f"/robots/{r.id}"
-    out = RobotOut.of(r)
-    s.commit()  # see deps.get_session
-    return out
+    return RobotOut.of(r)
 
 
 PAGE_HEADERS = {

@@ -81,7 +81,7 @@ class Server(Proc):
             if self.p.poll() is not None:
                 raise RuntimeError("server exited:\n" + self.output())
             try:
-                if httpx.get(self.url + "/health", timeout=2).status_code == 200:
+                if self.ready():
                     break
             except httpx.HTTPError:
                 pass
@@ -90,6 +90,10 @@ class Server(Proc):
                 raise RuntimeError("server did not start:\n" + self.output())
             time.sleep(0.1)
         self.client = httpx.Client(base_url=self.url, timeout=30)
+
+    def ready(self) -> bool:
+        """Whether the server is up (an httpx.HTTPError counts as not yet)."""
+        return httpx.get(self.url + "/health", timeout=2).status_code == 200
 
     def stop(self) -> None:
         if hasattr(self, "client"):
@@ -100,6 +104,17 @@ class Server(Proc):
         if hasattr(self, "client"):
             self.client.close()
         super().kill()
+
+
+PROBLEM = "application/problem+json"
+
+
+def assert_problem(r, status: int) -> dict:
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith(PROBLEM), r.headers
+    body = r.json()
+    assert body["status"] == status and body["title"] and "type" in body
+    return body
 
 
 def sqlite_count(db_path: Path, table: str) -> int:

@@ -5,17 +5,7 @@ import numpy as np
 import pytest
 
 
-from .conftest import Server, sqlite_count, wait_for
-
-PROBLEM = "application/problem+json"
-
-
-def assert_problem(r, status: int) -> dict:
-    assert r.status_code == status, r.text
-    assert r.headers["content-type"].startswith(PROBLEM), r.headers
-    body = r.json()
-    assert body["status"] == status and body["title"] and "type" in body
-    return body
+from .conftest import PROBLEM, Server, assert_problem, sqlite_count, wait_for
 
 
 @pytest.fixture(scope="module")

@@ -5,13 +5,11 @@ from __future__ import annotations
 import base64
 import http.client
 import json
-import os
 import re
 import shutil
 import socket
 import sqlite3
 import subprocess
-import sys
 import threading
 import time
 import urllib.error
@@ -23,18 +21,9 @@ from urllib.parse import urlsplit, urlunsplit
 import httpx
 import pytest
 
-from .conftest import PG_URL, ROOT, Proc, Server, base_env, free_port, reset_postgres, wait_for
+from .conftest import PG_URL, PROBLEM, Proc, Server, assert_problem, base_env, free_port, reset_postgres, wait_for
 
-PROBLEM = "application/problem+json"
 CHROMIUM = Path("/usr/bin/chromium")
-
-
-def assert_problem(r, status: int) -> dict:
-    assert r.status_code == status, r.text
-    assert r.headers["content-type"].startswith(PROBLEM), r.headers
-    body = r.json()
-    assert body["status"] == status and body["title"] and "type" in body
-    return body
 
 
 def assert_unavailable(r) -> dict:
@@ -52,31 +41,12 @@ def assert_health_unavailable(client) -> dict:
     return body
 
 
-class LooseServer(Proc):
+class LooseServer(Server):
     """`calib serve` that may start with its database down: ready once /health answers at all."""
 
-    def __init__(self, db_url: str, log: Path, **env):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        super().__init__(["serve", "--port", str(self.port)], base_env(db_url, **env), log)
-        deadline = time.monotonic() + 60
-        while True:
-            if self.p.poll() is not None:
-                raise RuntimeError("server exited:\n" + self.output())
-            try:
-                httpx.get(self.url + "/health", timeout=10)
-                break
-            except httpx.HTTPError:
-                pass
-            if time.monotonic() > deadline:
-                self.stop()
-                raise RuntimeError("server did not start:\n" + self.output())
-            time.sleep(0.1)
-        self.client = httpx.Client(base_url=self.url, timeout=30)
-
-    def stop(self) -> None:
-        self.client.close() if hasattr(self, "client") else None
-        super().stop()
+    def ready(self) -> bool:
+        httpx.get(self.url + "/health", timeout=10)
+        return True
 
 
 # ---------------------------------------------------------------------------------------------------- auth
