@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 import signal
 import socket
@@ -70,6 +71,11 @@ def table(rows: list[tuple[str, dict]]) -> None:
         print(f"   {label + ':':<{w}} {e['rms_mm']:8.3f} mm RMS, max {e['max_mm']:8.3f} mm", flush=True)
 
 
+def _stem(message: str | None) -> str:
+    """A job message without the elapsed time the worker appends ('testing 33 causes (12.0 s)')."""
+    return re.sub(r" \(\d+(\.\d+)? s\)$", "", message or "")
+
+
 class ProgressBar:
     """A text bar on stderr: redrawn in place on a terminal, one line per new message otherwise."""
 
@@ -85,7 +91,7 @@ class ProgressBar:
         if self.tty:
             self.stream.write("\r" + line[:WIDTH].ljust(WIDTH))
             self.stream.flush()
-        elif message != self.last:
+        elif _stem(message) != _stem(self.last):  # a log gets a line per step, not per elapsed-time tick
             self.stream.write(line + "\n")
             self.stream.flush()
         self.last = message
