@@ -222,7 +222,7 @@ def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_
     """Weighted residual (m,), orthonormal basis of the current model's Jacobian (m, r), and the chain."""
     model = cal.model
     dq, dp = cal.robot.effect_offsets(meas.joints, meas) if cal.effects else (0.0, 0.0)
-    chain = K.Chain(model, cal.x, meas.joints + dq, cal.R0)
+    chain = K.Chain(model, cal.x, meas.joints + dq, cal.R0, meas.labels)
     r = (meas.points - chain.p - dp) / sigma[:, None]
     cols = [chain.jacobian()[:, :, cal.free]]
     if cal.effects:
@@ -256,7 +256,7 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
-    ctx = Context(model, K.Chain(model, x_ref, meas.joints, cal.R0), meas)
+    ctx = Context(model, K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels), meas)
     Jq = chain.joint_jacobian()
     m, p = len(r), Q.shape[1]
     rss = float(r @ r)
@@ -388,7 +388,8 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     better = []
     loads_max = None
     if fit.model.has_mass:
-        loads_max = np.abs(joint_loads(K.Chain(model, x_ref, fit.meas.joints), fit.meas.payload_kg())).max(0)
+        loads_max = np.abs(joint_loads(K.Chain(model, x_ref, fit.meas.joints, None, fit.meas.labels),
+                                       fit.meas.payload_kg())).max(0)
     tried = []
     for alt in _refinements(c.effect, load_pool, play_pool, loads_max):
         try:
@@ -518,7 +519,7 @@ def _load_pool(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: n
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     _, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
-    ref = K.Chain(model, x_ref, meas.joints, cal.R0)
+    ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
     Jq = chain.joint_jacobian()
     payload = meas.payload is not None and np.ptp(meas.payload) > 0
     out = {}
@@ -536,7 +537,7 @@ def _lateral(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
     if model.n_joints < 2:
         return []
     _, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
-    ref = K.Chain(model, x_ref, meas.joints, cal.R0)
+    ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
     joints, mixes = [], []
     for j in range(model.n_joints):
         pair = []
@@ -569,7 +570,7 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
     r, _, chain = _weighted_system(cal, meas, sigma, x_ref)
     R = r.reshape(-1, 3) * sigma[:, None]
     Jq = chain.joint_jacobian()
-    ref = K.Chain(model, x_ref, meas.joints, cal.R0)
+    ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
     ref_ctx = Context(model, ref, meas)
     nominal = None
     if model.has_mass:
@@ -674,7 +675,7 @@ def _play_not_outliers(first: Calibration, meas: Measurements) -> bool:
     model, out = first.model, first.solution.outliers
     if not model.has_mass or len(out) < 2:
         return False
-    loads = joint_loads(K.Chain(model, first.x, meas.joints, first.R0), meas.payload_kg())
+    loads = joint_loads(K.Chain(model, first.x, meas.joints, first.R0, meas.labels), meas.payload_kg())
     for j in range(model.n_joints):
         sign = np.sign(loads[:, j])
         minority = sign == (1.0 if (sign > 0).sum() < (sign < 0).sum() else -1.0)

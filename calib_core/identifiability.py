@@ -126,23 +126,28 @@ def analyse(J: np.ndarray, names: list[str], order: list[int] | None = None) -> 
 _STRUCTURAL: dict[bytes, Identifiability] = {}
 
 
-def _geometry_key(model) -> bytes:
-    parts = [model.geometry, model.prismatic.astype(float), model.limits, model.tool]
-    return b"|".join(np.ascontiguousarray(a, float).tobytes() for a in parts) + repr(model.joint_names).encode()
+def _geometry_key(model, n_setups: int) -> bytes:
+    parts = [model.geometry, model.prismatic.astype(float), model.limits, model.target_points, model.parents,
+             model.is_fixed, model.target_rows] + ([model.pre] if model.pre is not None else [])
+    return (b"|".join(np.ascontiguousarray(a, float).tobytes() for a in parts)
+            + repr((model.joint_names, model.coupling, n_setups)).encode())
 
 
-def structural(model) -> Identifiability:
-    """What the model's structure can identify: the analysis on a rich random pose set within the limits
-    (cached per model geometry: the diagnosis identifies the same model dozens of times)."""
-    key = _geometry_key(model)
+def structural(model, setups: tuple[str, ...] = ("",)) -> Identifiability:
+    """What the model's structure can identify: the analysis on a rich random pose set within the limits, every
+    target and setup in turn (cached per model geometry: the diagnosis identifies the same model dozens of times)."""
+    key = _geometry_key(model, len(setups))
     hit = _STRUCTURAL.get(key)
     if hit is None:
         from . import kinematics as K
         from .twin import sample_uniform  # lazy: the twin imports this module
 
-        q = sample_uniform(model, STRUCTURAL_POSES, np.random.default_rng(0))
-        x = K.nominal_vector(model)
-        hit = analyse(K.Chain(model, x, q).jacobian().reshape(-1, len(x)), K.parameter_names(model))
+        N, S = STRUCTURAL_POSES * len(setups), len(setups)
+        q = sample_uniform(model, N, np.random.default_rng(0))
+        x = K.nominal_vector(model, n_setups=S)
+        labels = K.Labels(np.arange(N) % model.n_targets, (np.arange(N) // model.n_targets) % S)
+        J = K.Chain(model, x, q, np.broadcast_to(np.eye(3), (S, 3, 3)), labels).jacobian()
+        hit = analyse(J.reshape(-1, len(x)), K.parameter_names(model, setups))
         if len(_STRUCTURAL) > 256:
             _STRUCTURAL.clear()
         _STRUCTURAL[key] = hit
@@ -150,17 +155,18 @@ def structural(model) -> Identifiability:
 
 
 def frozen_joints(model, joints: np.ndarray) -> list[str]:
-    """Names of the joints whose values span less than FROZEN_SPAN (rad or mm) over the pose set."""
+    """Names of the joints (actuated or coupled) whose values span less than FROZEN_SPAN (rad or mm) over the pose set."""
     q = np.atleast_2d(np.asarray(joints, float))
     span = q.max(0) - q.min(0) if len(q) else np.zeros(model.n_joints)
-    return [model.joint_names[j] for j in np.flatnonzero(span < FROZEN_SPAN)]
+    return [model.joint_names[j] for j in np.flatnonzero((span < FROZEN_SPAN) & model.moving)]
 
 
-def assess(model, joints: np.ndarray, J: np.ndarray, names: list[str]) -> Identifiability:
+def assess(model, joints: np.ndarray, J: np.ndarray, names: list[str], setups: tuple[str, ...] = ("",)
+           ) -> Identifiability:
     """`analyse` of the real pose set (joints (N, n), Jacobian J (3N, P)) plus what it lacks against the
     model's structure: `unidentifiable`, `frozen_joints` and `complete`."""
     ident = analyse(J, names)
-    ref = structural(model)
+    ref = structural(model, setups)
     have = set(ident.identifiable)
     missing = [i for i in ref.identifiable if i not in have]
     frozen = frozen_joints(model, joints)

@@ -57,19 +57,20 @@ class CalibratedRobot:
         the bases on the geometry they were fitted on (so a prediction is the fitted model, exactly)."""
         meas = _columns(joints, columns)
         x = self.x if self.x_basis is None else self.x_basis
-        ctx = Context(self.model, K.Chain(self.model, x, joints, self.R0), meas)
+        ctx = Context(self.model, K.Chain(self.model, x, joints, self.R0, meas.labels), meas)
         return apply(list(self.effects), list(self.effect_values), ctx)
 
     def predict(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
-        """Measured point (N, 3) mm in the measurement frame for joints (N, n) in internal units.
+        """Measured point (N, 3) mm in the measurement frame for row values (N, n) in internal units.
 
-        `columns` carries payload / temperature / timestamp where effects need them (else nominal: 0 kg,
+        `columns` carries each pose's target and setup (model.expand_joints makes rows of actuated joints) and payload / temperature / timestamp where effects need them (else nominal: 0 kg,
         the calibration's mean temperature and time)."""
         joints = np.atleast_2d(np.asarray(joints, float))
+        labels = None if columns is None else columns.labels
         if not self.effects:
-            return K.forward(self.model, self.x, joints, self.R0)
+            return K.forward(self.model, self.x, joints, self.R0, labels)
         dq, dp = self.effect_offsets(joints, columns)
-        return K.forward(self.model, self.x, joints + dq, self.R0) + dp
+        return K.forward(self.model, self.x, joints + dq, self.R0, labels) + dp
 
     def to_state(self) -> dict:
         """JSON-able state; `from_state(model, state)` restores it exactly."""
@@ -115,6 +116,7 @@ class Calibration:
     x_basis: np.ndarray | None = None  # the geometry the effect bases were evaluated on
     noise_model: str = ""  # which noise model weighted the fit: the CSV's sigma or an instrument preset
     unmodelled_mm: float = 0.0  # per-axis std of held-out structure no cause in the model explains (diagnose sets it)
+    setup_names: tuple[str, ...] = ("",)  # one base pose per setup, in this order
 
     @property
     def warnings(self) -> list[str]:
@@ -136,8 +138,9 @@ class Calibration:
 
     def to_dict(self) -> dict:
         """The calibration answer of the contract (without the service's id)."""
-        n = self.model.n_joints
-        Rb, pb = self.base_pose()
+        m, lay = self.model, K.layout(self.model, self.x)
+        poses = [self.base_pose(s) for s in range(lay.n_setups)]
+        Rb, pb = poses[0]
         return {
             "model": ["geometric"] + sorted({e.kind for e in self.effects}),
             "parameters": self.parameters(),
@@ -148,18 +151,19 @@ class Calibration:
             "warnings": self.warnings,
             "noise_model": self.noise_model,
             "base_pose": {"position_mm": pb.tolist(), "rotation_matrix": Rb.tolist()},
-            "calibrated_model": self.model.to_dict(self.x[: 5 * n].reshape(n, 5), self.x[5 * n + 6:]),
+            **({"setups": [{"setup": name, "base_pose": {"position_mm": p.tolist(), "rotation_matrix": R.tolist()}}
+                           for name, (R, p) in zip(self.setup_names, poses)]} if lay.n_setups > 1 else {}),
+            "calibrated_model": m.to_dict(self.x[lay.geometry].reshape(-1, 5), self.x[lay.tools].reshape(-1, 3)),
         }
 
     @property
     def names(self) -> list[str]:
-        return K.parameter_names(self.model)
+        return K.parameter_names(self.model, self.setup_names)
 
-    def base_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """Rotation (3, 3) and position (3,) mm of the robot base in the measurement frame."""
-        n = self.model.n_joints
-        b = self.x[5 * n: 5 * n + 6]
-        return K.base_rotation(b, self.R0), b[:3].copy()
+    def base_pose(self, setup: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation (3, 3) and position (3,) mm of the robot base in the measurement frame (of a setup)."""
+        b = self.x[K.layout(self.model, self.x).base(setup)]
+        return K.base_rotation(b, self.R0 if self.R0.ndim == 2 else self.R0[setup]), b[:3].copy()
 
     def metrics(self) -> dict:
         d = np.linalg.norm(self.solution.residual, axis=1)
@@ -180,26 +184,29 @@ class Calibration:
         """Identified parameters in the model's units; base angles as absolute Z-Y-X Euler angles."""
         m = self.model
         ls, an = LENGTH_TO_MM[m.length_unit], ANGLE_TO_RAD[m.angle_unit]
-        ang = K.angular_mask(m)
+        lay = K.layout(m, self.x)
+        ang = K.angular_mask(m, lay.n_setups)
         std = dict(zip(self.free, self.solution.std))
         values = self.x.copy()
-        n = m.n_joints
-        ib = 5 * n + 3
-        euler, E = _euler_and_jacobian(self.x[ib: ib + 3], self.R0)
-        values[ib: ib + 3] = euler
-        rot_cov = np.zeros((3, 3))
         pos = {int(i): k for k, i in enumerate(self.free)}
-        sel = [pos.get(ib + k) for k in range(3)]
-        if all(s is not None for s in sel):
-            rot_cov = E @ self.solution.cov[np.ix_(sel, sel)] @ E.T
-            bad = not np.all(np.isfinite(self.solution.std[sel]))
-            for k in range(3):
-                std[ib + k] = np.inf if bad else float(np.sqrt(max(rot_cov[k, k], 0.0)))
+        for s in range(lay.n_setups):
+            ib = lay.base(s).start + 3
+            euler, E = _euler_and_jacobian(self.x[ib: ib + 3], self.R0 if self.R0.ndim == 2 else self.R0[s])
+            values[ib: ib + 3] = euler
+            sel = [pos.get(ib + k) for k in range(3)]
+            if all(k is not None for k in sel):
+                rot_cov = E @ self.solution.cov[np.ix_(sel, sel)] @ E.T
+                bad = not np.all(np.isfinite(self.solution.std[sel]))
+                for k in range(3):
+                    std[ib + k] = np.inf if bad else float(np.sqrt(max(rot_cov[k, k], 0.0)))
+        nominal = K.nominal_vector(m, n_setups=lay.n_setups)
+        base = np.zeros(len(self.x), bool)
+        base[lay.bases] = True
         out = []
         for i in self.free:
             scale = an if ang[i] else ls
             out.append({"name": self.names[i], "value": float(values[i] / scale),
-                        "nominal": float(_nominal(m)[i] / scale) if i < 5 * n or i >= ib + 3 else None,
+                        "nominal": None if base[i] else float(nominal[i] / scale),
                         "std": _finite(std[i] / scale), "unit": m.angle_unit if ang[i] else m.length_unit})
         k = len(self.free)
         for e in self.effects:
@@ -213,10 +220,6 @@ class Calibration:
 def _finite(v: float) -> float | None:
     """A std for JSON: None where the parameter is undetermined (inf)."""
     return float(v) if np.isfinite(v) else None
-
-
-def _nominal(model: RobotModel) -> np.ndarray:
-    return K.nominal_vector(model)
 
 
 def _rms(d: np.ndarray) -> float:
@@ -239,12 +242,13 @@ def _euler_and_jacobian(small: np.ndarray, R0: np.ndarray, h: float = 1e-7):
     return e0, E
 
 
-def _prior_std(model: RobotModel, prior_scale: float = 1.0) -> np.ndarray:
+def _prior_std(model: RobotModel, prior_scale: float = 1.0, n_setups: int = 1) -> np.ndarray:
     """Prior std toward nominal; prior_scale multiplies the precision of the joint parameters (base and tool
     keep theirs: the registration is always identified)."""
-    std = np.where(K.angular_mask(model), PRIOR_STD_RAD, PRIOR_STD_MM)
-    std[: 5 * model.n_joints] /= np.sqrt(prior_scale)
-    std[5 * model.n_joints: 5 * model.n_joints + 6] = np.inf  # the base pose is unknown: no prior
+    lay = K.layout(model, n_setups)
+    std = np.where(K.angular_mask(model, n_setups), PRIOR_STD_RAD, PRIOR_STD_MM)
+    std[lay.geometry] /= np.sqrt(prior_scale)
+    std[lay.bases] = np.inf  # the base poses are unknown: no prior
     return std
 
 
@@ -276,7 +280,7 @@ def _split(theta: np.ndarray, effects, model) -> list[np.ndarray]:
 def effect_bases(model, meas, effects, x, R0) -> tuple[np.ndarray, np.ndarray]:
     """Stacked bases of the effects at the poses: Phi_q (N, n, K) and Phi_p (N, 3, K)."""
     N, n = meas.joints.shape
-    ctx = Context(model, K.Chain(model, x, meas.joints, R0), meas)
+    ctx = Context(model, K.Chain(model, x, meas.joints, R0, meas.labels), meas)
     bq, bp = [], []
     for e in effects:
         b = e.basis(ctx)
@@ -292,15 +296,16 @@ class ChainEvaluations:
     cross-validation, candidate models, prior strengths) share them: a warm start at an already evaluated
     point costs nothing, and a fold's held-out prediction comes with its training evaluation."""
 
-    def __init__(self, model: RobotModel, joints: np.ndarray, R0: np.ndarray, size: int = 32):
-        self.model, self.joints, self.R0, self.size = model, joints, R0, size
+    def __init__(self, model: RobotModel, joints: np.ndarray, R0: np.ndarray, size: int = 32,
+                 labels: K.Labels | None = None):
+        self.model, self.joints, self.R0, self.size, self.labels = model, joints, R0, size, labels
         self._memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
     def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         key = np.asarray(x, float).tobytes()
         hit = self._memo.pop(key, None)
         if hit is None:
-            chain = K.Chain(self.model, np.array(x, float), self.joints, self.R0)
+            chain = K.Chain(self.model, np.array(x, float), self.joints, self.R0, self.labels)
             hit = (chain.p, chain.jacobian())
             if len(self._memo) >= self.size:
                 self._memo.pop(next(iter(self._memo)))  # the least recently used
@@ -317,10 +322,10 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
     tolerance. Geometric fits (no bases) may take memoised `evals` of all of meas's poses and fit only `rows`
     (a boolean mask, sigma given for those rows); `covariance=False` skips the covariance; `damping` is LM's
     initial damping (small for a start near the optimum)."""
-    q, y = meas.joints, meas.points
+    q, y, labels = meas.joints, meas.points, meas.labels
     p_geo = len(idx)
     K_eff = 0 if bases is None else bases[0].shape[2]
-    geo_std = _prior_std(model, prior_scale)[idx] if regularize else np.full(p_geo, np.inf)
+    geo_std = _prior_std(model, prior_scale, meas.n_setups)[idx] if regularize else np.full(p_geo, np.inf)
     prior_std = np.r_[geo_std, effect_prior] if effect_prior is not None else np.r_[geo_std, np.full(K_eff, np.inf)]
     if rows is not None and (evals is None or K_eff):
         raise ValueError("rows needs memoised evaluations of a geometric fit")
@@ -335,11 +340,11 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
                 if rows is not None:
                     p, J = p[rows], J[rows]
                 return y_rows - p, J[:, :, idx]
-            chain = K.Chain(model, x, q, R0)
+            chain = K.Chain(model, x, q, R0, labels)
             return y - chain.p, chain.jacobian()[:, :, idx]
         theta = xs[p_geo:]
         Phi_q, Phi_p = bases
-        chain = K.Chain(model, x, q + Phi_q @ theta, R0)
+        chain = K.Chain(model, x, q + Phi_q @ theta, R0, labels)
         J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
         return y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
 
@@ -358,11 +363,22 @@ def _effect_prior(model, effects) -> np.ndarray | None:
 
 
 def prealign(model: RobotModel, meas: Measurements) -> tuple[np.ndarray, np.ndarray]:
-    """Nominal parameter vector with the base placed by a rigid fit, and the reference rotation R0."""
-    x = K.nominal_vector(model)
-    R0, t = K.rigid_fit(K.forward(model, x, meas.joints), meas.points)
-    x[5 * model.n_joints: 5 * model.n_joints + 3] = t
-    return x, R0
+    """Nominal parameter vector with each setup's base placed by a rigid fit, and the reference rotation R0
+    ((3, 3), or (S, 3, 3) with several setups)."""
+    S = meas.n_setups
+    lay = K.layout(model, S)
+    x = K.nominal_vector(model, n_setups=S)
+    labels = meas.labels
+    p = K.forward(model, x, meas.joints, np.broadcast_to(np.eye(3), (S, 3, 3)) if S > 1 else None, labels)
+    R0 = np.empty((S, 3, 3))
+    for s in range(S):
+        rows = slice(None) if S == 1 else meas.setup == s
+        if len(np.unique(np.round(p[rows], 6), axis=0)) < 3:
+            raise ValueError(f"setup {meas.setup_names[s]!r} has fewer than three distinct measured positions: "
+                             "its base pose cannot be placed")
+        R0[s], t = K.rigid_fit(p[rows], meas.points[rows])
+        x[lay.base(s).start: lay.base(s).start + 3] = t
+    return x, (R0[0] if S == 1 else R0)
 
 
 def identify(
@@ -403,9 +419,9 @@ def identify(
                          "over every joint's range); measure more poses")
     sigma = meas.noise_sigma_mm()
     x0, R0 = prealign(model, meas)
-    names = K.parameter_names(model)
-    J = K.Chain(model, x0, meas.joints, R0).jacobian().reshape(-1, len(x0))
-    ident = assess(model, meas.joints, J, names)
+    names = K.parameter_names(model, meas.setup_names)
+    J = K.Chain(model, x0, meas.joints, R0, meas.labels).jacobian().reshape(-1, len(x0))
+    ident = assess(model, meas.joints, J, names, meas.setup_names)
     idx = _select(names, ident, free)
     n_eff = sum(len(e.parameter_names(model)) for e in effects)
     if 3 * meas.n_poses <= len(idx) + n_eff:
@@ -442,7 +458,8 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
                       point_ids=list(meas.point_ids), effects=tuple(effects), sigma_mm=sigma,
                       model_error_mm=s_model, sigma0_measurement=sigma0_measurement, prior_scale=prior_scale,
-                      x_basis=x_ref if effects else None, noise_model=meas.noise_source())
+                      x_basis=x_ref if effects else None, noise_model=meas.noise_source(),
+                      setup_names=meas.setup_names)
     if folds > 1 and meas.n_poses >= 2 * folds:
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
                                                  eprior, prior_scale=prior_scale, start=sol.x, evals=evals)
@@ -468,7 +485,7 @@ def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bas
     out = np.empty(meas.n_poses)
     warm = {} if start is None else {"damping": WARM_DAMPING, "ftol": WARM_FTOL}
     if bases is None and evals is None:
-        evals = ChainEvaluations(model, meas.joints, R0)
+        evals = ChainEvaluations(model, meas.joints, R0, labels=meas.labels)
     for k in range(folds):
         train, test = assign != k, assign == k
         if bases is None:
@@ -484,7 +501,8 @@ def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bas
             x = x0.copy()
             x[idx] = sol.x[: len(idx)]
             theta = sol.x[len(idx):]
-            pred = K.forward(model, x, meas.joints[test] + bases[0][test] @ theta, R0) + bases[1][test] @ theta
+            labels = None if meas.labels is None else meas.labels[test]
+            pred = K.forward(model, x, meas.joints[test] + bases[0][test] @ theta, R0, labels) + bases[1][test] @ theta
         out[test] = np.linalg.norm(meas.points[test] - pred, axis=1)
     return out
 

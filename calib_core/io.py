@@ -15,10 +15,16 @@ from datetime import datetime, timezone
 import numpy as np
 
 from .instruments import INSTRUMENTS, instrument
+from .kinematics import Labels
 from .model import (LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM, SIGMA_RANGE_MM, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S,
-                    TIMESTAMP_RANGE_UTC, RobotModel, revolute_bound)
+                    TIMESTAMP_RANGE_UTC, RobotModel, name_problem, revolute_bound)
 
-OPTIONAL = ("point", "timestamp", "temperature", "payload", "sigma")
+OPTIONAL = ("point", "timestamp", "temperature", "payload", "sigma", "target", "setup", "qw", "qx", "qy", "qz")
+QUATERNION = ("qw", "qx", "qy", "qz")
+MAX_TAU = 1e6
+"""|tau_<joint>|: 1 MN*m or 1 MN, far beyond any robot joint."""
+QUATERNION_TOL = 1e-3
+"""|norm - 1| allowed for a measured orientation quaternion (it is normalised)."""
 MAX_LISTED_ERRORS = 1000
 LIMIT_TOL = 1e-9
 """Relative slack on joint limits, so that values written at a limit with rounding still pass."""
@@ -26,6 +32,8 @@ LIMIT_MODES = ("reject", "warn")
 """parse_measurements(limits=...): out-of-limit joint values are errors ("reject", the default) or are accepted
 and reported in Measurements.out_of_limits ("warn": vendor limits are often conservative)."""
 MAX_LISTED_ROWS = 10
+COUPLING_TOL = 1e-3
+"""A coupled joint's CSV value may differ from its coupling by this much (model joint units: rounding)."""
 
 
 class MeasurementError(ValueError):
@@ -52,6 +60,11 @@ class Measurements:
     sigma: np.ndarray | None = None  # (N,) mm, 1-sigma per coordinate
     instrument: str | None = None  # noise preset (calib_core.instruments) used where `sigma` is absent
     out_of_limits: list[dict] = field(default_factory=list)  # limits="warn": per joint, the rows beyond its limits
+    target: np.ndarray | None = None  # (N,) int index into model.target_names
+    setup: np.ndarray | None = None  # (N,) int index into setup_names
+    setup_names: tuple[str, ...] = ("",)
+    orientation: np.ndarray | None = None  # (N, 4) unit quaternion w, x, y, z of the target frame; NaN: a point row
+    tau: np.ndarray | None = None  # (N, n) measured joint torque N*m / force N per model row; NaN where not given
 
     @property
     def n_poses(self) -> int:
@@ -71,12 +84,26 @@ class Measurements:
     def payload_kg(self) -> np.ndarray:
         return np.zeros(self.n_poses) if self.payload is None else self.payload
 
+    @property
+    def labels(self) -> Labels | None:
+        """Each pose's target and setup for the kinematics; None when every pose measures target 0 in one setup."""
+        if self.target is None and self.setup is None:
+            return None
+        zero = np.zeros(self.n_poses, int)
+        return Labels(zero if self.target is None else self.target, zero if self.setup is None else self.setup)
+
+    @property
+    def n_setups(self) -> int:
+        return len(self.setup_names)
+
     def subset(self, idx) -> "Measurements":
         """The poses at integer or boolean index idx."""
         pick = lambda a: None if a is None else a[idx]  # noqa: E731
         ids = [self.point_ids[i] for i in np.arange(self.n_poses)[idx]] if self.point_ids else []
         return Measurements(self.joints[idx], self.points[idx], ids, pick(self.timestamp),
-                            pick(self.temperature), pick(self.payload), pick(self.sigma), self.instrument)
+                            pick(self.temperature), pick(self.payload), pick(self.sigma), self.instrument,
+                            target=pick(self.target), setup=pick(self.setup), setup_names=self.setup_names,
+                            orientation=pick(self.orientation), tau=pick(self.tau))
 
 
 def _decode(data: bytes | str) -> str:
@@ -210,19 +237,32 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
         if h in seen:
             err(header_line, h, h, "duplicated column")
         seen.add(h)
-    known = set(model.joint_names) | {"x", "y", "z"} | set(OPTIONAL)
+    act = list(model.actuated_names)
+    coupled = [model.joint_names[j] for j in np.flatnonzero(model.is_coupled)]
+    fixed = {model.joint_names[j] for j in np.flatnonzero(model.is_fixed)}
+    taus = {f"tau_{model.joint_names[j]}": j for j in np.flatnonzero(model.moving)}
+    known = set(act) | set(coupled) | {"x", "y", "z"} | set(OPTIONAL) | set(taus)
     for h in header:
-        if h not in known:
-            err(header_line, h, h, f"unknown column; expected the joints {list(model.joint_names)}, "
-                                   f"x, y, z and optionally {list(OPTIONAL)}")
-    for need in list(model.joint_names) + ["x", "y", "z"]:
+        if h in fixed:
+            err(header_line, h, h, "a fixed row of the model has no joint value: leave this column out")
+        elif h not in known:
+            err(header_line, h, h, f"unknown column; expected the joints {act}, x, y, z and optionally "
+                                   f"{list(OPTIONAL)}" + (f", the coupled joints {coupled}" if coupled else "")
+                                   + ", tau_<joint>")
+    for need in act + ["x", "y", "z"]:
         if need not in header:
-            err(header_line, need, None, "missing column" + (" (a joint of the model)" if need in model.joint_names else ""))
+            err(header_line, need, None, "missing column" + (" (a joint of the model)" if need in act else ""))
+    if model.n_targets > 1 and "target" not in header:
+        err(header_line, "target", None, f"missing column: the model has {model.n_targets} targets "
+                                         f"({', '.join(model.target_names)}); say which one each row measures")
+    quat = [c for c in QUATERNION if c in header]
+    if quat and len(quat) < 4:
+        err(header_line, None, quat, "an orientation needs all four columns qw, qx, qy, qz")
     if total:
         fail()
 
     col = {h: k for k, h in enumerate(header)}
-    required = list(model.joint_names) + ["x", "y", "z"]
+    required = act + ["x", "y", "z"]
     for line, head, body in commented:
         try:
             fields = _split(body)
@@ -249,8 +289,14 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
     sig_lo, sig_hi = SIGMA_RANGE_MM[0] / ls, SIGMA_RANGE_MM[1] / ls
     t_lo, t_hi = TEMPERATURE_RANGE_C
     unit = model.length_unit
-    numeric = list(model.joint_names) + ["x", "y", "z"] + [c for c in ("temperature", "payload", "sigma") if c in col]
+    row_of = {name: j for j, name in enumerate(model.joint_names)}
+    joint_cols = act + [c for c in coupled if c in col]
+    numeric = joint_cols + ["x", "y", "z"] + [c for c in ("temperature", "payload", "sigma") if c in col]
     values = {c: np.empty(len(rows) - 1) for c in numeric}
+    optional_numeric = {c: np.full(len(rows) - 1, np.nan) for c in (*QUATERNION, *taus) if c in col}
+    target_ix = np.zeros(len(rows) - 1, int) if "target" in col else None
+    setup_raw = [""] * (len(rows) - 1) if "setup" in col else None
+    target_of = {t: k for k, t in enumerate(model.target_names)}
     stamps = np.empty(len(rows) - 1) if "timestamp" in col else None
     ids: list[str] = []
     beyond: dict[int, list[int]] = {}  # limits="warn": joint -> line numbers of its out-of-limit values
@@ -260,14 +306,15 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
         if len(fields) != len(header):
             err(line, None, len(fields), f"expected {len(header)} fields like the header, found {len(fields)}")
             continue
-        for j, c in enumerate(numeric):  # the joints come first: j < n_joints is a joint's index
+        for c in numeric:
             raw = fields[col[c]].strip()
             v, why = parse_number(raw)
             if why:
                 err(line, c, raw, why)
                 continue
             values[c][i] = v
-            if j < model.n_joints:
+            j = row_of.get(c)
+            if j is not None:
                 outside = not inside[j][0] <= v <= inside[j][1]
                 if outside and limits == "reject":
                     err(line, c, raw, f"outside the joint limits [{lo[j]:g}, {hi[j]:g}] {model.joint_unit(j)}")
@@ -290,6 +337,36 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
                     err(line, c, raw, f"payload must be between 0 and {MAX_PAYLOAD_KG:g} kg")
             elif c == "temperature" and not t_lo <= v <= t_hi:
                 err(line, c, raw, f"temperature outside {t_lo:g}..{t_hi:g} deg C")
+        for c, arr in optional_numeric.items():
+            raw = fields[col[c]].strip()
+            if not raw:
+                continue  # a point row among 6-D rows; a load not measured on this row
+            v, why = parse_number(raw)
+            if why:
+                err(line, c, raw, why)
+            elif c in taus and not abs(v) <= MAX_TAU:
+                err(line, c, raw, f"implausible joint load: at most {MAX_TAU:g} N*m (or N)")
+            else:
+                arr[i] = v
+        if quat:
+            qv = np.array([optional_numeric[c][i] for c in QUATERNION])
+            if np.isnan(qv).any() and not np.isnan(qv).all():
+                err(line, "qw", None, "give all four of qw, qx, qy, qz or none (a point row)")
+            elif not np.isnan(qv).any() and not abs(np.linalg.norm(qv) - 1.0) <= QUATERNION_TOL:
+                err(line, "qw", f"|q| = {np.linalg.norm(qv):.6g}", "the orientation must be a unit quaternion "
+                                                                   f"(|q| within {QUATERNION_TOL:g} of 1)")
+        if target_ix is not None:
+            raw = fields[col["target"]].strip()
+            if raw not in target_of:
+                err(line, "target", raw, f"unknown target: one of {', '.join(model.target_names)}")
+            else:
+                target_ix[i] = target_of[raw]
+        if setup_raw is not None:
+            raw = fields[col["setup"]].strip()
+            why = name_problem(raw, what="setup name", csv_column=False)
+            if why:
+                err(line, "setup", raw, why)
+            setup_raw[i] = raw
         if stamps is not None:
             raw = fields[col["timestamp"]].strip()
             try:
@@ -319,23 +396,48 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
                               "limits": [float(b) if math.isfinite(b) else None for b in (lo[j], hi[j])],
                               "rows": len(beyond[j]), "min": float(col_j.min()), "max": float(col_j.max()),
                               "first_rows": beyond[j][:MAX_LISTED_ROWS]})
-    joints = np.column_stack([values[c] for c in model.joint_names]) * js
+    joints = model.expand_joints(np.column_stack([values[c] * js[row_of[c]] for c in act]))
+    for c in joint_cols[len(act):]:  # a coupled joint's column must agree with its coupling
+        j = row_of[c]
+        off = np.abs(values[c] * js[j] - joints[:, j]) / js[j]
+        for k in np.flatnonzero(off > COUPLING_TOL)[:MAX_LISTED_ERRORS]:
+            err(lines[1 + k][0], c, f"{values[c][k]:g}", f"disagrees with the coupling by {off[k]:.4g} "
+                                                         f"{model.joint_unit(j)} (the model computes "
+                                                         f"{joints[k, j] / js[j]:.6g})")
+    if total:
+        fail()
+    setup = setup_names = None
+    if setup_raw is not None:
+        setup_names = tuple(dict.fromkeys(setup_raw))
+        setup = np.array([setup_names.index(v) for v in setup_raw]) if len(setup_names) > 1 else None
+    orientation = None
+    if quat:
+        orientation = np.column_stack([optional_numeric[c] for c in QUATERNION])
+        orientation /= np.linalg.norm(orientation, axis=1, keepdims=True)
+    tau = None
+    if any(c in col for c in taus):
+        tau = np.full((len(rows) - 1, model.n_joints), np.nan)
+        for c, j in taus.items():
+            if c in optional_numeric:
+                tau[:, j] = optional_numeric[c]
     points = np.column_stack([values[c] for c in ("x", "y", "z")]) * ls
     return Measurements(
         joints=joints, points=points, point_ids=ids, timestamp=stamps,
         temperature=values.get("temperature"), payload=values.get("payload"),
         sigma=values["sigma"] * ls if "sigma" in values else None, instrument=instrument,
-        out_of_limits=out_of_limits,
+        out_of_limits=out_of_limits, target=target_ix if model.n_targets > 1 else None, setup=setup,
+        setup_names=setup_names if setup is not None else ("",), orientation=orientation, tau=tau,
     )
 
 
 def write_measurements(meas: Measurements, model: RobotModel) -> str:
-    """The measurements as contract CSV in the model's units."""
+    """The measurements as contract CSV in the model's units (actuated joints; section 5 columns when present)."""
     ls = LENGTH_TO_MM[model.length_unit]
-    cols = ["point", *model.joint_names, "x", "y", "z"]
+    act = model.actuated
+    cols = ["point", *model.actuated_names, "x", "y", "z"]
     data = [np.asarray(meas.point_ids or [f"P{i + 1:04d}" for i in range(meas.n_poses)], dtype=object)]
-    data += list((meas.joints / model.joint_scale()).T) + list((meas.points / ls).T)
-    fmt = ["{}"] + ["{:.9g}"] * model.n_joints + ["{:.6f}"] * 3
+    data += list((meas.joints[:, act] / model.joint_scale()[act]).T) + list((meas.points / ls).T)
+    fmt = ["{}"] + ["{:.9g}"] * len(act) + ["{:.6f}"] * 3
     if meas.timestamp is not None:
         cols.append("timestamp")
         data.append(np.array([datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="seconds")
@@ -347,6 +449,24 @@ def write_measurements(meas: Measurements, model: RobotModel) -> str:
             cols.append(name)
             data.append(arr)
             fmt.append(f)
+    if meas.target is not None:
+        cols.append("target")
+        data.append(np.array(model.target_names, dtype=object)[meas.target])
+        fmt.append("{}")
+    if meas.setup is not None:
+        cols.append("setup")
+        data.append(np.array(meas.setup_names, dtype=object)[meas.setup])
+        fmt.append("{}")
+    extra = []
+    if meas.orientation is not None:
+        extra += [(c, meas.orientation[:, k], "{:.9f}") for k, c in enumerate(QUATERNION)]
+    if meas.tau is not None:
+        extra += [(f"tau_{model.joint_names[j]}", meas.tau[:, j], "{:.6g}") for j in range(model.n_joints)
+                  if not np.isnan(meas.tau[:, j]).all()]
+    for name, arr, f in extra:
+        cols.append(name)
+        data.append(np.array(["" if np.isnan(v) else f.format(v) for v in arr], dtype=object))
+        fmt.append("{}")
     out = _io.StringIO()
     out.write(",".join(cols) + "\n")
     for row in zip(*data):

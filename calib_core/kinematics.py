@@ -1,13 +1,15 @@
 """Forward kinematics and the analytic identification Jacobian, vectorised over N poses.
 
 The parameter vector x (mm, rad) is laid out as
-    [a, alpha, d, theta, beta] per joint (5n), base [x, y, z, rx, ry, rz] (6), tool [x, y, z] (3).
+    [a, alpha, d, theta, beta] per row (5n), base [x, y, z, rx, ry, rz] per setup (6S), [x, y, z] per target (3T);
+a serial chain measured in one setup at one tool point has 5n + 9.
 The base pose of the robot in the measurement frame is Trans(x, y, z) R0 Rz(rz) Ry(ry) Rx(rx):
 R0 is a fixed reference rotation (from a rigid pre-alignment) so that the identified angles stay small.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -17,22 +19,83 @@ BASE = ("x", "y", "z", "rx", "ry", "rz")
 TOOL = ("x", "y", "z")
 
 
-def parameter_names(model: RobotModel) -> list[str]:
-    """Names of the full parameter vector, e.g. 'J4.theta', 'base.rx', 'tool.z'."""
+@dataclass(frozen=True)
+class Labels:
+    """Per pose: which target it measures and which setup (base-to-tracker transform) it was taken in."""
+
+    target: np.ndarray  # (N,) int index into model.target_names
+    setup: np.ndarray  # (N,) int index into the measurement set's setups
+
+    def __getitem__(self, idx) -> "Labels":
+        return Labels(self.target[idx], self.setup[idx])
+
+    @property
+    def n_setups(self) -> int:
+        return int(self.setup.max()) + 1 if len(self.setup) else 1
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each block sits in the parameter vector: 5 per row, 6 per setup's base, 3 per target."""
+
+    n: int
+    n_setups: int
+    n_targets: int
+
+    @property
+    def geometry(self) -> slice:
+        return slice(0, 5 * self.n)
+
+    def base(self, s: int = 0) -> slice:
+        return slice(5 * self.n + 6 * s, 5 * self.n + 6 * s + 6)
+
+    def tool(self, t: int = 0) -> slice:
+        i = 5 * self.n + 6 * self.n_setups + 3 * t
+        return slice(i, i + 3)
+
+    @property
+    def bases(self) -> slice:
+        return slice(5 * self.n, 5 * self.n + 6 * self.n_setups)
+
+    @property
+    def tools(self) -> slice:
+        return slice(self.bases.stop, self.bases.stop + 3 * self.n_targets)
+
+    @property
+    def size(self) -> int:
+        return self.tools.stop
+
+
+def layout(model: RobotModel, x_or_setups=1) -> Layout:
+    """The layout for a model and a number of setups (or a parameter vector, from its length)."""
+    T = model.n_targets
+    if isinstance(x_or_setups, (int, np.integer)):
+        return Layout(model.n_joints, int(x_or_setups), T)
+    S = (len(x_or_setups) - 5 * model.n_joints - 3 * T) // 6
+    return Layout(model.n_joints, S, T)
+
+
+def parameter_names(model: RobotModel, setups: tuple[str, ...] = ("",)) -> list[str]:
+    """Names of the full parameter vector, e.g. 'J4.theta', 'base.rx', 'tool.z' ('base[s2].rx' with several
+    setups, 'tool[left].z' with several targets)."""
+    bname = (lambda s: "base") if len(setups) == 1 else (lambda s: f"base[{s}]")
+    tname = (lambda t: "tool") if model.n_targets == 1 else (lambda t: f"tool[{t}]")
     return ([f"{j}.{p}" for j in model.joint_names for p in GEOMETRIC]
-            + [f"base.{p}" for p in BASE] + [f"tool.{p}" for p in TOOL])
+            + [f"{bname(s)}.{p}" for s in setups for p in BASE]
+            + [f"{tname(t)}.{p}" for t in model.target_names for p in TOOL])
 
 
-def angular_mask(model: RobotModel) -> np.ndarray:
+def angular_mask(model: RobotModel, n_setups: int = 1) -> np.ndarray:
     """True where a parameter is an angle (rad internally), False for lengths (mm)."""
     per_joint = [p in ("alpha", "theta", "beta") for p in GEOMETRIC]
-    return np.array(per_joint * model.n_joints + [False] * 3 + [True] * 3 + [False] * 3)
+    return np.array(per_joint * model.n_joints + ([False] * 3 + [True] * 3) * n_setups
+                    + [False] * 3 * model.n_targets)
 
 
-def nominal_vector(model: RobotModel, base: np.ndarray | None = None) -> np.ndarray:
-    """The model's own parameters as a vector; base pose zero unless given."""
-    b = np.zeros(6) if base is None else base
-    return np.concatenate([model.geometry.ravel(), b, model.tool])
+def nominal_vector(model: RobotModel, base: np.ndarray | None = None, n_setups: int = 1) -> np.ndarray:
+    """The model's own parameters as a vector; base poses zero unless given ((6,) or (S, 6))."""
+    b = np.zeros((n_setups, 6)) if base is None else np.broadcast_to(base, (n_setups, 6))
+    return np.concatenate([model.geometry.ravel(), np.ravel(b), model.target_points.ravel()])
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -62,25 +125,42 @@ def base_rotation(base: np.ndarray, R0: np.ndarray) -> np.ndarray:
     return R0 @ _rz(base[5]) @ _ry(base[4]) @ _rx(base[3])
 
 
-class Chain:
-    """Frames of every joint for N poses: the one pass that both FK and Jacobian need.
+def _per_setup_R0(R0, S: int) -> np.ndarray:
+    R0 = np.eye(3) if R0 is None else np.asarray(R0, float)
+    return np.broadcast_to(R0, (S, 3, 3)) if R0.ndim == 2 else R0
 
-    Stores per joint the world axes and origins at which each elementary MD-H motion acts.
+
+class Chain:
+    """Frames of every row for N poses: the one pass that both FK and Jacobian need.
+
+    Stores per row the world axes and origins at which each elementary MD-H motion acts, over a tree
+    (each row follows its parent's frame), for each pose's target and setup (`labels`, default all 0).
     """
 
-    def __init__(self, model: RobotModel, x: np.ndarray, q: np.ndarray, R0: np.ndarray | None = None):
+    def __init__(self, model: RobotModel, x: np.ndarray, q: np.ndarray, R0: np.ndarray | None = None,
+                 labels: Labels | None = None):
         n = model.n_joints
         q = np.atleast_2d(np.asarray(q, dtype=float))
         N = q.shape[0]
-        g = x[: 5 * n].reshape(n, 5)
-        base, tool = x[5 * n: 5 * n + 6], x[5 * n + 6: 5 * n + 9]
-        R0 = np.eye(3) if R0 is None else R0
-        Rb = base_rotation(base, R0)
-        self.model, self.x, self.N, self.R0, self.Rb = model, x, N, R0, Rb
-        self.base_origin = base[:3]
-        R = np.broadcast_to(Rb, (N, 3, 3))
-        o = np.broadcast_to(base[:3], (N, 3))
-        # per joint: x axis / origin of frame i-1, z axis / origin after Tx(a), y axis / origin after Tz(d)
+        lay = layout(model, x)
+        S, T = lay.n_setups, lay.n_targets
+        g = x[lay.geometry].reshape(n, 5)
+        bases = x[lay.bases].reshape(S, 6)
+        tools = x[lay.tools].reshape(T, 3)
+        R0s = _per_setup_R0(R0, S)
+        Rbs = np.array([base_rotation(bases[s], R0s[s]) for s in range(S)])
+        if labels is None:
+            setup = target = np.zeros(N, int)
+        else:
+            setup, target = labels.setup, labels.target
+        self.model, self.x, self.N, self.layout, self.labels = model, x, N, lay, labels
+        self.R0, self.Rbs, self.bases, self.setup, self.target = R0s[0] if S == 1 else R0s, Rbs, bases, setup, target
+        self.Rb = Rbs[0] if S == 1 else Rbs[setup]  # (3, 3) or per pose (N, 3, 3)
+        self.base_origin = bases[0, :3] if S == 1 else bases[setup, :3]
+        Rbase = np.broadcast_to(Rbs[0], (N, 3, 3)) if S == 1 else Rbs[setup]
+        obase = np.broadcast_to(bases[0, :3], (N, 3)) if S == 1 else bases[setup, :3]
+        par, fixed, pre = model.parents, model.is_fixed, model.pre
+        # per row: x axis / origin of frame i-1, z axis / origin after Tx(a), y axis / origin after Tz(d)
         self.x_prev = np.empty((n, N, 3))
         self.o_prev = np.empty((n, N, 3))
         self.z_axis = np.empty((n, N, 3))
@@ -90,12 +170,17 @@ class Chain:
         self.R = np.empty((n, N, 3, 3))  # rotation of each joint frame
         for j in range(n):
             a, alpha, d, theta, beta = g[j]
+            R, o = (Rbase, obase) if par[j] < 0 else (self.R[par[j]], self.o_beta[par[j]])
+            if pre is not None and not np.array_equal(pre[j], _EYE4):
+                o = o + R @ pre[j, :3, 3]
+                R = R @ pre[j, :3, :3]
             self.x_prev[j] = R[:, :, 0]
             self.o_prev[j] = o
             R1 = R @ _rx(alpha)
             o1 = o + a * R[:, :, 0]
-            th = np.broadcast_to(theta + (0.0 if model.prismatic[j] else q[:, j]), (N,))
-            dd = np.broadcast_to(d + (q[:, j] if model.prismatic[j] else 0.0), (N,))
+            moves = not fixed[j]
+            th = np.broadcast_to(theta + (q[:, j] if moves and not model.prismatic[j] else 0.0), (N,))
+            dd = np.broadcast_to(d + (q[:, j] if moves and model.prismatic[j] else 0.0), (N,))
             c, s = np.cos(th)[:, None], np.sin(th)[:, None]
             xa = c * R1[:, :, 0] + s * R1[:, :, 1]
             ya = c * R1[:, :, 1] - s * R1[:, :, 0]
@@ -106,44 +191,60 @@ class Chain:
             self.o_theta[j] = o1
             self.y_beta[j] = ya
             self.o_beta[j] = o2
-            R = R2 @ _ry(beta) if beta != 0.0 else R2
-            o = o2
-            self.R[j] = R
-        self.o_end = o
-        self.p = o + R @ tool  # (N, 3) the measured point in the measurement frame
+            self.R[j] = R2 @ _ry(beta) if beta != 0.0 else R2
+        rows = model.target_rows
+        self.end_row = rows[target]  # (N,) the row each pose's target sits on
+        idx = np.arange(N)
+        self.o_end = self.o_beta[self.end_row, idx]
+        self.R_end = self.R[self.end_row, idx]
+        self.p = self.o_end + np.einsum("nab,nb->na", self.R_end, tools[target])  # (N, 3) in the measurement frame
+        self.on_path = model.ancestors()[self.end_row].T  # (n, N): row j carries pose i's target
 
     def joint_jacobian(self) -> np.ndarray:
-        """dp/dq for every joint, shape (N, 3, n): z x (p - o) for revolute, z for prismatic."""
+        """dp/dq for every row, shape (N, 3, n): z x (p - o) for revolute, z for prismatic, 0 for fixed rows
+        and rows not on the way to the pose's target."""
         rev = _cross(self.z_axis, self.p[None] - self.o_theta)
         pri = self.z_axis
         J = np.where(self.model.prismatic[:, None, None], pri, rev)
+        J = J * (self.on_path & self.model.moving[:, None])[..., None]
         return np.moveaxis(J, 0, 2)
 
     def jacobian(self) -> np.ndarray:
-        """dp/dx for the full parameter vector, shape (N, 3, 5n + 9), x in mm and rad."""
-        n, N, p = self.model.n_joints, self.N, self.p
+        """dp/dx for the full parameter vector, shape (N, 3, P), x in mm and rad (layout())."""
+        n, N, p, lay = self.model.n_joints, self.N, self.p, self.layout
         cols = np.empty((n, 5, N, 3))
         cols[:, 0] = self.x_prev  # a_{i-1}: translation along x_{i-1}
         cols[:, 1] = _cross(self.x_prev, p[None] - self.o_prev)  # alpha_{i-1}
         cols[:, 2] = self.z_axis  # d_i
         cols[:, 3] = _cross(self.z_axis, p[None] - self.o_theta)  # theta_i
         cols[:, 4] = _cross(self.y_beta, p[None] - self.o_beta)  # beta_i
+        if not self.model.is_serial:
+            cols *= self.on_path[:, None, :, None]
         geo = cols.reshape(5 * n, N, 3)
-        base = self.x[5 * n: 5 * n + 6]
-        rz_axis = self.R0[:, 2]
-        ry_axis = (self.R0 @ _rz(base[5]))[:, 1]
-        rx_axis = (self.R0 @ _rz(base[5]) @ _ry(base[4]))[:, 0]
-        dp = p - self.base_origin
-        bcols = np.stack([np.broadcast_to(e, (N, 3)) for e in np.eye(3)]
+        blocks = [geo]
+        for s in range(lay.n_setups):
+            base, R0 = self.bases[s], (self.R0 if lay.n_setups == 1 else self.R0[s])
+            rz_axis = R0[:, 2]
+            ry_axis = (R0 @ _rz(base[5]))[:, 1]
+            rx_axis = (R0 @ _rz(base[5]) @ _ry(base[4]))[:, 0]
+            dp = p - base[:3]
+            b = np.stack([np.broadcast_to(e, (N, 3)) for e in np.eye(3)]
                          + [_cross(rx_axis, dp), _cross(ry_axis, dp), _cross(rz_axis, dp)])
-        tcols = np.moveaxis(self.R[-1], 2, 0)  # (3, N, 3)
-        J = np.concatenate([geo, bcols, tcols], axis=0)  # (P, N, 3)
+            blocks.append(b if lay.n_setups == 1 else b * (self.setup == s)[None, :, None])
+        for t in range(lay.n_targets):
+            tc = np.moveaxis(self.R_end, 2, 0)  # (3, N, 3)
+            blocks.append(tc if lay.n_targets == 1 else tc * (self.target == t)[None, :, None])
+        J = np.concatenate(blocks, axis=0)  # (P, N, 3)
         return np.moveaxis(J, 0, 2)
 
 
-def forward(model: RobotModel, x: np.ndarray, q: np.ndarray, R0: np.ndarray | None = None) -> np.ndarray:
-    """Measured point (N, 3) mm in the measurement frame for joints q (N, n) in rad / mm."""
-    return Chain(model, x, q, R0).p
+_EYE4 = np.eye(4)
+
+
+def forward(model: RobotModel, x: np.ndarray, q: np.ndarray, R0: np.ndarray | None = None,
+            labels: Labels | None = None) -> np.ndarray:
+    """Measured point (N, 3) mm in the measurement frame for row values q (N, n) in rad / mm."""
+    return Chain(model, x, q, R0, labels).p
 
 
 def rigid_fit(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

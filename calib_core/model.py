@@ -161,10 +161,100 @@ class RobotModel:
     angle_unit: str = "deg"
     source_convention: str = "mdh"
     extra: dict = field(default_factory=dict)
+    # real cells (contract section 5); the defaults make a serial chain with one target at the last row
+    parent: np.ndarray | None = None  # (n,) int: the row each row follows, -1 = the base; default the previous
+    fixed: np.ndarray | None = None  # (n,) bool: rows without a joint variable
+    coupling: tuple = ()  # ((row, ((src_row, coef), ...), offset in internal units), ...): mimic joints
+    pre: np.ndarray | None = None  # (n, 4, 4) constant transform before each row's MD-H (rows given as xyz/rpy)
+    align: np.ndarray | None = None  # (n, 3, 3): each row's user (URDF) link frame -> its joint frame (z = axis)
+    targets: tuple = ()  # ((name, row, xyz (3,) mm in the row's frame), ...); empty: ("tool", n - 1, tool)
 
     @property
     def n_joints(self) -> int:
+        """Rows of the kinematic model (fixed and coupled ones included)."""
         return len(self.joint_names)
+
+    @property
+    def parents(self) -> np.ndarray:
+        return np.arange(self.n_joints) - 1 if self.parent is None else self.parent
+
+    @property
+    def is_fixed(self) -> np.ndarray:
+        return np.zeros(self.n_joints, bool) if self.fixed is None else self.fixed
+
+    @property
+    def is_coupled(self) -> np.ndarray:
+        out = np.zeros(self.n_joints, bool)
+        out[[c[0] for c in self.coupling]] = True
+        return out
+
+    @property
+    def actuated(self) -> np.ndarray:
+        """Rows whose value is measured and commanded (a CSV column each): neither fixed nor coupled."""
+        return np.flatnonzero(~self.is_fixed & ~self.is_coupled)
+
+    @property
+    def actuated_names(self) -> tuple[str, ...]:
+        return tuple(self.joint_names[j] for j in self.actuated)
+
+    @property
+    def moving(self) -> np.ndarray:
+        """Rows with a joint variable (actuated or coupled), where joint-space causes can act."""
+        return ~self.is_fixed
+
+    @property
+    def is_serial(self) -> bool:
+        return (self.parent is None or bool(np.all(self.parent == np.arange(self.n_joints) - 1))) \
+            and len(self.target_rows) == 1 and self.target_rows[0] == self.n_joints - 1
+
+    @property
+    def target_names(self) -> tuple[str, ...]:
+        return tuple(t[0] for t in self.targets) if self.targets else ("tool",)
+
+    @property
+    def target_rows(self) -> np.ndarray:
+        return np.array([t[1] for t in self.targets] if self.targets else [self.n_joints - 1], dtype=int)
+
+    @property
+    def target_points(self) -> np.ndarray:
+        """(T, 3) mm, each target in its row's MD-H frame."""
+        return np.array([t[2] for t in self.targets], float) if self.targets else self.tool[None].copy()
+
+    @property
+    def n_targets(self) -> int:
+        return len(self.target_names)
+
+    def ancestors(self) -> np.ndarray:
+        """(n, n) bool: [r, j] is True when row j is row r or on its way from the base."""
+        n, par = self.n_joints, self.parents
+        A = np.eye(n, dtype=bool)
+        for j in range(n):
+            if par[j] >= 0:
+                A[j] |= A[par[j]]
+        return A
+
+    def descendants(self, j: int) -> np.ndarray:
+        """Rows carried by row j (itself included), in row order."""
+        return np.flatnonzero(self.ancestors()[:, j])
+
+    def expand_joints(self, q_act: np.ndarray) -> np.ndarray:
+        """Row values (N, n) in internal units from the actuated joints' values (N, n_act): fixed rows 0,
+        coupled rows their linear combination."""
+        q_act = np.atleast_2d(np.asarray(q_act, float))
+        q = np.zeros((q_act.shape[0], self.n_joints))
+        q[:, self.actuated] = q_act
+        for row, terms, offset in self.coupling:
+            q[:, row] = offset + sum(c * q[:, src] for src, c in terms)
+        return q
+
+    def coupling_matrix(self) -> np.ndarray:
+        """(n, n_act): d(row values) / d(actuated values)."""
+        act = self.actuated
+        A = np.zeros((self.n_joints, len(act)))
+        A[act, np.arange(len(act))] = 1.0
+        for row, terms, _ in self.coupling:
+            A[row] = sum(c * A[src] for src, c in terms)
+        return A
 
     @property
     def has_mass(self) -> bool:
@@ -178,29 +268,86 @@ class RobotModel:
         return self.length_unit if self.prismatic[j] else self.angle_unit
 
     def to_dict(self, geometry: np.ndarray | None = None, tool: np.ndarray | None = None) -> dict:
-        """The model as contract JSON (always MD-H), optionally with calibrated geometry / tool."""
+        """The model as contract JSON, optionally with calibrated geometry / target points ((3,) or (T, 3)).
+
+        MD-H rows (with `parent`, `coupled`, `fixed` and `targets` where the model has them); a model given with
+        xyz/rpy/axis rows is written back that way, each row's origin from the identified geometry."""
         g = self.geometry if geometry is None else geometry
-        t = self.tool if tool is None else tool
+        tools = self.target_points if tool is None else np.asarray(tool, float).reshape(-1, 3)
         ls, an = LENGTH_TO_MM[self.length_unit], ANGLE_TO_RAD[self.angle_unit]
         js = self.joint_scale()
+        general = self.pre is not None
+        if general:
+            links, targets_xyz, coms = self._link_frames(g, tools)
+        else:
+            targets_xyz, coms = tools, self.com
+        couple = {row: (terms, off) for row, terms, off in self.coupling}
         joints = []
         for j, name in enumerate(self.joint_names):
-            row = {"name": name, "type": "prismatic" if self.prismatic[j] else "revolute"}
-            for k, p in enumerate(GEOMETRIC):
-                row[p] = float(g[j, k] / (an if p in ANGULAR else ls))
-            row["limits"] = [float(v / js[j]) for v in self.limits[j]]
+            kind = "fixed" if self.is_fixed[j] else "prismatic" if self.prismatic[j] else "revolute"
+            row = {"name": name, "type": kind}
+            if self.parent is not None and self.parent[j] != j - 1:
+                row["parent"] = "base" if self.parent[j] < 0 else self.joint_names[self.parent[j]]
+            if general:
+                row["xyz"] = [float(v / ls) for v in links[j][:3, 3]]
+                row["rpy"] = [float(v / an) for v in _rpy(links[j][:3, :3])]
+                row["axis"] = [0.0, 0.0, 1.0]
+            else:
+                for k, p in enumerate(GEOMETRIC):
+                    row[p] = float(g[j, k] / (an if p in ANGULAR else ls))
+            if j in couple:
+                terms, off = couple[j]
+                row["coupled"] = {self.joint_names[src]: float(c * js[src] / js[j]) for src, c in terms}
+                if off:
+                    row["coupled"]["offset"] = float(off / js[j])
+            if not self.is_fixed[j] and np.isfinite(self.limits[j]).all():
+                row["limits"] = [float(v / js[j]) for v in self.limits[j]]
             if self.mass is not None:
                 row["mass"] = float(self.mass[j])
-                row["com"] = [float(v / ls) for v in self.com[j]]
+                row["com"] = [float(v / ls) for v in coms[j]]
             joints.append(row)
-        return {
-            "name": self.name,
-            "convention": "mdh",
-            "units": {"length": self.length_unit, "angle": self.angle_unit},
-            "joints": joints,
-            "tool": [float(v / ls) for v in t],
-            "gravity": [float(v) for v in self.gravity],
-        }
+        doc = {"name": self.name, "convention": "mdh", "units": {"length": self.length_unit, "angle": self.angle_unit},
+               "joints": joints}
+        if self.targets or general:
+            doc["targets"] = [{"name": t, "parent": self.joint_names[r], "xyz": [float(v / ls) for v in xyz]}
+                              for t, r, xyz in zip(self.target_names, self.target_rows, targets_xyz)]
+        else:
+            doc["tool"] = [float(v / ls) for v in tools[0]]
+        doc["gravity"] = [float(v) for v in self.gravity]
+        return doc
+
+    def _link_frames(self, g: np.ndarray, tools: np.ndarray):
+        """For xyz/rpy export at geometry g: each row's origin (4x4, mm) in its parent's link frame (the joint
+        frame before Ry(beta), z along the axis), the targets and centres of mass in their rows' link frames."""
+        from .kinematics import Chain  # the kinematics builds on this module
+
+        n = self.n_joints
+        x = np.concatenate([g.ravel(), np.zeros(6), tools.ravel()])
+        ch = Chain(self, x, np.zeros((1, n)))
+        C = np.empty((n, 4, 4))
+        for j in range(n):
+            C[j] = np.eye(4)
+            C[j, :3, :3] = ch.R[j, 0] @ _rot_y(-g[j, 4])
+            C[j, :3, 3] = ch.o_beta[j, 0]
+        inv = np.linalg.inv(C)
+        par = self.parents
+        links = [C[j] if par[j] < 0 else inv[par[j]] @ C[j] for j in range(n)]
+        world = lambda j, v: ch.o_beta[j, 0] + ch.R[j, 0] @ v  # noqa: E731
+        local = lambda j, w: inv[j, :3, :3] @ w + inv[j, :3, 3]  # noqa: E731
+        targets = [local(r, world(r, t)) for r, t in zip(self.target_rows, tools)]
+        coms = None if self.com is None else [local(j, world(j, self.com[j])) for j in range(n)]
+        return links, targets, coms
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def _rpy(R: np.ndarray) -> np.ndarray:
+    """URDF roll, pitch, yaw (rad) of R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return np.array([math.atan2(R[2, 1], R[2, 2]), -math.asin(max(-1.0, min(1.0, R[2, 0]))),
+                     math.atan2(R[1, 0], R[0, 0])])
 
 
 def _rot_x(a: float) -> np.ndarray:
@@ -284,11 +431,12 @@ def parse_model(doc: dict) -> RobotModel:
         raise ModelError(errors)
 
     names, prismatic, rows, limits, masses, coms = [], [], [], [], [], []
+    fixed, parent_names, couplings, origins, axes = [], [], [], [], []
     for j, jd in enumerate(joints):
         where = f"joints[{j}]"
         if not isinstance(jd, dict):
             errors.append({"field": where, "value": jd, "message": "must be an object"})
-            continue
+            jd = {"name": f"_{j}"}
         jname = jd.get("name")
         why = name_problem(jname)
         if why:
@@ -297,28 +445,57 @@ def parse_model(doc: dict) -> RobotModel:
             errors.append({"field": f"{where}.name", "value": jname, "message": "duplicate joint name"})
         names.append(jname)
         jtype = jd.get("type", "revolute")
-        if not isinstance(jtype, str) or jtype not in ("revolute", "prismatic"):
-            errors.append({"field": f"{where}.type", "value": jtype, "message": "must be 'revolute' or 'prismatic'"})
+        if not isinstance(jtype, str) or jtype not in JOINT_TYPES:
+            errors.append({"field": f"{where}.type", "value": jtype,
+                           "message": "must be 'revolute', 'prismatic' or 'fixed'"})
         prismatic.append(jtype == "prismatic")
+        fixed.append(jtype == "fixed")
+        parent_names.append(jd.get("parent", _PREVIOUS))
+        general = any(k in jd for k in ("xyz", "rpy", "axis"))
         row = []
-        for p in GEOMETRIC:
-            if p == "beta" and convention == "dh":
-                if jd.get("beta", 0) not in (0, 0.0):
-                    errors.append({"field": f"{where}.beta", "value": jd.get("beta"),
-                                   "message": "standard DH has no beta; use convention 'mdh'"})
-                row.append(0.0)
-                continue
-            v = _finite_number(errors, f"{where}.{p}", jd.get(p, 0.0))
-            if p in ANGULAR:
-                v = _in_range(errors, f"{where}.{p}", v, ang_bound, ang_max)
-            else:
-                v = _in_range(errors, f"{where}.{p}", v, len_bound, len_max)
-            row.append(0.0 if v is None else v * (an if p in ANGULAR else ls))
+        if general:  # the URDF way: a transform from the parent's link frame, then motion about / along `axis`
+            given = [p for p in GEOMETRIC if p in jd]
+            if given:
+                errors.append({"field": f"{where}.{given[0]}", "value": jd[given[0]],
+                               "message": "give a row either as MD-H constants or as xyz/rpy/axis, not both"})
+            xyz = _vector(errors, f"{where}.xyz", jd.get("xyz", [0.0, 0.0, 0.0]), 3, len_bound, len_max)
+            rpy = _vector(errors, f"{where}.rpy", jd.get("rpy", [0.0, 0.0, 0.0]), 3, ang_bound, ang_max)
+            axis = _vector(errors, f"{where}.axis", jd.get("axis", [0.0, 0.0, 1.0]), 3)
+            if axis is not None and not np.linalg.norm(axis) > 1e-9:
+                errors.append({"field": f"{where}.axis", "value": jd.get("axis"), "message": "must not be zero"})
+                axis = None
+            origins.append(None if xyz is None or rpy is None else _origin(xyz * ls, rpy * an))
+            axes.append(None if axis is None else axis / np.linalg.norm(axis))
+            row = [0.0] * len(GEOMETRIC)
+        else:
+            origins.append(None)
+            axes.append(None)
+            for p in GEOMETRIC:
+                if p == "beta" and convention == "dh":
+                    if jd.get("beta", 0) not in (0, 0.0):
+                        errors.append({"field": f"{where}.beta", "value": jd.get("beta"),
+                                       "message": "standard DH has no beta; use convention 'mdh'"})
+                    row.append(0.0)
+                    continue
+                v = _finite_number(errors, f"{where}.{p}", jd.get(p, 0.0))
+                if p in ANGULAR:
+                    v = _in_range(errors, f"{where}.{p}", v, ang_bound, ang_max)
+                else:
+                    v = _in_range(errors, f"{where}.{p}", v, len_bound, len_max)
+                row.append(0.0 if v is None else v * (an if p in ANGULAR else ls))
         rows.append(row)
+        couplings.append(jd.get("coupled"))
+        if couplings[-1] is not None and jtype == "fixed":
+            errors.append({"field": f"{where}.coupled", "value": couplings[-1],
+                           "message": "a fixed row has no joint value to couple"})
         lim = jd.get("limits")
         jscale = ls if jtype == "prismatic" else an
-        if lim is None:
-            lim = [-math.inf, math.inf] if jtype == "revolute" else None
+        if jtype == "fixed":
+            if lim is not None:
+                errors.append({"field": f"{where}.limits", "value": lim, "message": "a fixed row has no limits"})
+            limits.append([0.0, 0.0])
+        elif lim is None:
+            lim = [-math.inf, math.inf] if jtype != "prismatic" or couplings[-1] is not None else None
             if lim is None:
                 errors.append({"field": f"{where}.limits", "value": None, "message": "a prismatic joint needs limits"})
                 lim = [0.0, 0.0]
@@ -344,6 +521,14 @@ def parse_model(doc: dict) -> RobotModel:
         else:
             masses.append(None)
             coms.append(None)
+    prismatic_a = np.array(prismatic, bool)
+    scale = np.where(prismatic_a, ls, an)
+    parent = _parents(errors, names, parent_names)
+    coupling = _couplings(errors, names, couplings, fixed, scale)
+    targets_doc = doc.get("targets")
+    if targets_doc is not None and "tool" in doc:
+        errors.append({"field": "tool", "value": doc["tool"],
+                       "message": "give either `tool` (one target at the last row) or `targets`, not both"})
     tool = _vector(errors, "tool", doc.get("tool", [0.0, 0.0, 0.0]), 3, len_bound, len_max)
     gravity = _vector(errors, "gravity", doc.get("gravity", [0.0, 0.0, -9.81]))
     if gravity is not None and not float(np.linalg.norm(gravity)) <= MAX_GRAVITY_MS2:
@@ -355,6 +540,13 @@ def parse_model(doc: dict) -> RobotModel:
         missing = [names[j] for j, h in enumerate(has_mass) if not h]
         errors.append({"field": "joints", "value": missing,
                        "message": "mass and com must be given for every joint or for none"})
+    targets = _targets(errors, names, targets_doc, len_bound, len_max, ls) if targets_doc is not None else ()
+    fixed_a = np.array(fixed, bool)
+    general = any(o is not None for o in origins) or any(a is not None for a in axes)
+    tree = parent is not None and not np.all(parent == np.arange(len(names)) - 1)
+    if convention == "dh" and (general or tree or targets or fixed_a.any() or coupling):
+        errors.append({"field": "convention", "value": "dh", "message": "rows with parent, fixed rows, coupled "
+                       "joints, targets or xyz/rpy need convention 'mdh' (or xyz/rpy/axis rows)"})
     if errors:
         raise ModelError(errors)
 
@@ -362,13 +554,140 @@ def parse_model(doc: dict) -> RobotModel:
     tool = tool * ls
     mass = np.array(masses, dtype=float) if all(has_mass) else None
     com = np.array(coms, dtype=float) if all(has_mass) else None
+    pre = align = None
+    if general:  # each row's constant part in its parent's joint frame; points given in a link frame moved in
+        par = np.arange(len(names)) - 1 if parent is None else parent
+        align = np.array([np.eye(3) if a is None else _z_to(a) for a in axes])
+        pre = np.array([(_hom(align[par[j]].T) if par[j] >= 0 else np.eye(4))
+                        @ (np.eye(4) if origins[j] is None else origins[j]) @ _hom(align[j]) for j in range(len(names))])
+        if com is not None:
+            com = np.einsum("jba,jb->ja", align, com)
+        targets = tuple((t, r, align[r].T @ v) for t, r, v in targets)
+        tool = align[-1].T @ tool
     if convention == "dh":
         geometry, tool, com = _dh_to_mdh(geometry, tool, com)
+    if targets:
+        tool = targets[0][2].copy()
     return RobotModel(
-        name=name, joint_names=tuple(names), prismatic=np.array(prismatic), geometry=geometry,
+        name=name, joint_names=tuple(names), prismatic=prismatic_a, geometry=geometry,
         limits=np.array(limits, dtype=float), tool=tool, gravity=gravity, mass=mass, com=com,
         length_unit=lu, angle_unit=au, source_convention=convention,
+        parent=parent, fixed=fixed_a if fixed_a.any() else None, coupling=coupling, pre=pre, align=align,
+        targets=targets,
     )
+
+
+JOINT_TYPES = ("revolute", "prismatic", "fixed")
+_PREVIOUS = object()
+"""`parent` not given: the row follows the previous row (the base for the first)."""
+
+
+def _hom(R: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
+
+
+def _origin(xyz: np.ndarray, rpy: np.ndarray) -> np.ndarray:
+    """URDF origin: Trans(xyz) Rz(yaw) Ry(pitch) Rx(roll), lengths mm, angles rad."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                          [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                          [-sp, cp * sr, cp * cr]])
+    T[:3, 3] = xyz
+    return T
+
+
+def _z_to(axis: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking z to the unit vector `axis` (a half turn about x for -z)."""
+    z = np.array([0.0, 0.0, 1.0])
+    v, c = np.cross(z, axis), float(z @ axis)
+    if c < -1 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    V = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + V + V @ V / (1 + c)
+
+
+def _parents(errors, names, given) -> np.ndarray | None:
+    """Row index of each row's parent (-1: the base); None when every row follows the previous one."""
+    if all(p is _PREVIOUS for p in given):
+        return None
+    out = np.arange(len(names)) - 1
+    for j, p in enumerate(given):
+        if p is _PREVIOUS:
+            continue
+        if p is None or p == "base":
+            out[j] = -1
+        elif not isinstance(p, str) or p not in names[:j]:
+            why = ("must name a joint listed before this one (or 'base')" if p not in names
+                   else "must name a joint listed before this one: list a tree from the base outwards")
+            errors.append({"field": f"joints[{j}].parent", "value": p, "message": why})
+        else:
+            out[j] = names.index(p)
+    return out
+
+
+def _couplings(errors, names, given, fixed, scale) -> tuple:
+    """Mimic joints: (row, ((src_row, coef), ...), offset) in internal units; sources are actuated joints or
+    coupled joints listed before, so the values follow in row order."""
+    out, coupled_rows = [], set()
+    for j, c in enumerate(given):
+        if c is None:
+            continue
+        where = f"joints[{j}].coupled"
+        if not isinstance(c, dict) or not c:
+            errors.append({"field": where, "value": c, "message": "must be an object {joint: coefficient, ...}"})
+            continue
+        terms, offset = [], 0.0
+        for k, v in c.items():
+            v = _finite_number(errors, f"{where}.{k}", v)
+            if v is None:
+                continue
+            if k == "offset":
+                offset = v * scale[j]
+            elif k not in names or k == names[j]:
+                errors.append({"field": f"{where}.{k}", "value": k, "message": "must name another joint of the model"})
+            elif fixed[names.index(k)]:
+                errors.append({"field": f"{where}.{k}", "value": k, "message": "a fixed row has no value to follow"})
+            elif names.index(k) in {r for r in range(len(names)) if given[r] is not None} and names.index(k) not in coupled_rows:
+                errors.append({"field": f"{where}.{k}", "value": k,
+                               "message": "a coupled joint may follow another coupled joint only if that one is "
+                                          "listed before it"})
+            else:
+                src = names.index(k)
+                terms.append((src, v * scale[j] / scale[src]))
+        coupled_rows.add(j)
+        out.append((j, tuple(terms), offset))
+    return tuple(out)
+
+
+def _targets(errors, names, doc, len_bound, len_max, ls) -> tuple:
+    """((name, row, xyz mm in the row's link frame), ...) from the model's `targets` list."""
+    if not isinstance(doc, list) or not doc:
+        errors.append({"field": "targets", "value": doc, "message": "must be a non-empty list of "
+                       "{name, parent, xyz}"})
+        return ()
+    out, seen = [], set()
+    for k, t in enumerate(doc):
+        where = f"targets[{k}]"
+        if not isinstance(t, dict):
+            errors.append({"field": where, "value": t, "message": "must be an object {name, parent, xyz}"})
+            continue
+        tname = t.get("name")
+        why = name_problem(tname, what="target name", csv_column=False)
+        if why or tname in seen:
+            errors.append({"field": f"{where}.name", "value": tname, "message": why or "duplicate target name"})
+        seen.add(tname)
+        p = t.get("parent", names[-1])
+        if p not in names:
+            errors.append({"field": f"{where}.parent", "value": p, "message": "must name a joint of the model"})
+            continue
+        xyz = _vector(errors, f"{where}.xyz", t.get("xyz", [0.0, 0.0, 0.0]), 3, len_bound, len_max)
+        if xyz is not None:
+            out.append((tname, names.index(p), xyz * ls))
+    return tuple(out)
 
 
 def _dh_to_mdh(dh: np.ndarray, tool: np.ndarray, com: np.ndarray | None):

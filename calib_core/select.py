@@ -94,10 +94,10 @@ class _Shared:
             return  # identify() refuses such a pose set and says why
         self.sigma = meas.noise_sigma_mm()
         self.x0, self.R0 = prealign(model, meas)
-        self.names = K.parameter_names(model)
-        self.evals = ChainEvaluations(model, meas.joints, self.R0)
+        self.names = K.parameter_names(model, meas.setup_names)
+        self.evals = ChainEvaluations(model, meas.joints, self.R0, labels=meas.labels)
         J = self.evals(self.x0)[1].reshape(-1, len(self.x0))
-        self.ident = assess(model, meas.joints, J, self.names)
+        self.ident = assess(model, meas.joints, J, self.names, meas.setup_names)
 
     def identify(self, free, idx, *, loss, folds, prior_scale, start=None) -> Calibration:
         model, meas = self.model, self.meas

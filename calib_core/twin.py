@@ -30,19 +30,28 @@ def identifiable_mask(model: RobotModel, n_poses: int = 400, seed: int = 0) -> n
     """Which parameters are independent on a rich random pose set (the twin's minimal parameterisation)."""
     q = sample_uniform(model, n_poses, np.random.default_rng(seed))
     x = K.nominal_vector(model)
-    J = K.Chain(model, x, q).jacobian().reshape(-1, len(x))
+    J = K.Chain(model, x, q, labels=all_targets(model, n_poses)).jacobian().reshape(-1, len(x))
     mask = np.zeros(len(x), bool)
     mask[analyse(J, K.parameter_names(model)).identifiable] = True
     return mask
 
 
+def all_targets(model: RobotModel, n_poses: int) -> K.Labels | None:
+    """Pose i measures target i mod T (one setup): every target in turn; None for one target."""
+    if model.n_targets == 1:
+        return None
+    return K.Labels(np.arange(n_poses) % model.n_targets, np.zeros(n_poses, int))
+
+
 def sample_uniform(model: RobotModel, n: int, rng: np.random.Generator, margin: float = 0.05) -> np.ndarray:
-    """n joint vectors (internal units) uniform within the limits, `margin` of each range kept clear."""
-    lo, hi = model.limits[:, 0].copy(), model.limits[:, 1].copy()
+    """n row-value vectors (internal units): the actuated joints uniform within their limits (`margin` of each
+    range kept clear), coupled rows following them, fixed rows 0."""
+    act = model.actuated
+    lo, hi = model.limits[act, 0].copy(), model.limits[act, 1].copy()
     inf = ~np.isfinite(lo) | ~np.isfinite(hi)
     lo[inf], hi[inf] = -np.pi, np.pi
     span = hi - lo
-    return lo + span * (margin + (1 - 2 * margin) * rng.random((n, model.n_joints)))
+    return model.expand_joints(lo + span * (margin + (1 - 2 * margin) * rng.random((n, len(act)))))
 
 
 class Twin:
@@ -66,13 +75,13 @@ class Twin:
         rng = self.rng
         x = K.nominal_vector(model)
         P = len(x)
-        n = model.n_joints
+        lay = K.layout(model)
         mask = np.ones(P, bool) if all_parameters else identifiable_mask(model)
-        mask[5 * n:] = False  # base and tool are drawn below
+        mask[lay.bases.start:] = False  # base and tool are drawn below
         err = np.where(K.angular_mask(model), ANGLE_ERROR_RAD, LENGTH_ERROR_MM) * error_scale
         x[mask] += rng.normal(0.0, err[mask])
-        x[5 * n + 6:] += rng.normal(0.0, tool_error_mm, 3)
-        x[5 * n: 5 * n + 3] = rng.uniform(-3000.0, 3000.0, 3)  # tracker a few metres from the robot
+        x[lay.tools] += rng.normal(0.0, tool_error_mm, 3 * model.n_targets)
+        x[lay.bases.start: lay.bases.start + 3] = rng.uniform(-3000.0, 3000.0, 3)  # tracker a few metres away
         self.R0 = Rotation.random(random_state=rng).as_matrix()
         self.x_true = x
         self.repeatability_mm = repeatability_mm
@@ -86,11 +95,13 @@ class Twin:
         payload = None if payload_kg is None else np.asarray(
             self.rng.choice(np.atleast_1d(payload_kg), N) if np.ndim(payload_kg) else np.full(N, payload_kg), float)
         temp = 20.0 + 6.0 * (1 - np.exp(-(t - t[0]) / 5400.0)) if temperature else None
-        return Measurements(joints=joints, points=np.zeros((N, 3)), timestamp=t, temperature=temp, payload=payload)
+        labels = all_targets(self.model, N)
+        return Measurements(joints=joints, points=np.zeros((N, 3)), timestamp=t, temperature=temp, payload=payload,
+                            target=None if labels is None else labels.target)
 
-    def true_points(self, joints: np.ndarray) -> np.ndarray:
-        """Where the physical robot puts the tool point, mm in the tracker frame, without noise."""
-        return K.forward(self.model, self.x_true, joints, self.R0)
+    def true_points(self, joints: np.ndarray, labels: K.Labels | None = None) -> np.ndarray:
+        """Where the physical robot puts the targets, mm in the tracker frame, without noise."""
+        return K.forward(self.model, self.x_true, joints, self.R0, labels)
 
     def sample_joints(self, n: int) -> np.ndarray:
         return sample_uniform(self.model, n, self.rng)
@@ -104,7 +115,7 @@ class Twin:
         campaign has timestamps."""
         q = self.sample_joints(n) if joints is None else np.asarray(joints, float)
         meas = self.columns(q, payload_kg, temperature)
-        p = self.true_points(q)
+        p = self.true_points(q, meas.labels)
         N = len(q)
         p = p + self.rng.normal(0.0, self.repeatability_mm, (N, 3))
         if self.tracker_noise:

@@ -26,13 +26,14 @@ def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None =
     """d predicted point / d [x[free], effect parameters] at the poses, (N, 3, p) with p = len(cal.solution.x)."""
     q = np.atleast_2d(np.asarray(joints, float))
     model = cal.model
+    labels = None if columns is None else columns.labels
     if not cal.effects:
-        return K.Chain(model, cal.x, q, cal.R0).jacobian()[:, :, cal.free]
+        return K.Chain(model, cal.x, q, cal.R0, labels).jacobian()[:, :, cal.free]
     meas = _columns(q, columns)
     Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects), cal.x if cal.x_basis is None else cal.x_basis,
                                 cal.R0)
     theta = cal.solution.x[len(cal.free):]
-    chain = K.Chain(model, cal.x, q + Phi_q @ theta, cal.R0)
+    chain = K.Chain(model, cal.x, q + Phi_q @ theta, cal.R0, labels)
     J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
     return np.concatenate([chain.jacobian()[:, :, cal.free], J_eff], axis=2)
 

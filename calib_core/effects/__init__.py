@@ -34,7 +34,8 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
     moving = [j for j in range(n) if np.ptp(meas.joints[:, j]) > 1e-3]  # rad or mm: a joint that moves
     if model.has_mass:
         # a joint's load can vary even where the joint stands still; a vertical axis carries none
-        load = joint_loads(Chain(model, nominal_vector(model), meas.joints), meas.payload_kg())
+        load = joint_loads(Chain(model, nominal_vector(model, n_setups=meas.n_setups), meas.joints, None, meas.labels),
+                           meas.payload_kg())
         span = np.ptp(load, axis=0)
         loaded = [j for j in range(n) if span[j] > 1e-6 * max(span.max(), 1e-300)]
         out += [JointCompliance((j,)) for j in loaded]
