@@ -51,7 +51,7 @@ PULL_BACKOFF = 0.5
 class Compensation:
     """Corrected joint commands, internal units (rad / mm), one row per target."""
 
-    joints: np.ndarray  # (N, n) the command nearest the seed, always within the limits
+    joints: np.ndarray  # (N, n_act) the command of the actuated joints nearest the seed, always within the limits
     residual_mm: np.ndarray  # (N,) the calibrated model's distance to the target at `joints`
     reachable: np.ndarray  # (N,) bool: residual within tolerance
     reason: list[str | None]  # None where reachable, else why not
@@ -59,7 +59,7 @@ class Compensation:
 
     def to_dict(self, model: RobotModel) -> dict:
         """The contract answer (joints in the model's units, NaN-free) plus the per-target status."""
-        return {"joints": (self.joints / model.joint_scale()).tolist(),
+        return {"joints": (self.joints / model.joint_scale()[model.actuated]).tolist(),
                 "residual_mm": [float(r) if np.isfinite(r) else None for r in self.residual_mm],
                 "reachable": self.reachable.tolist(), "reason": list(self.reason)}
 
@@ -74,17 +74,21 @@ def compensate(
     tol_mm: float = 1e-3,
     max_iter: int = 30,
 ) -> Compensation:
-    """Joint commands (N, n) for which the calibrated model puts the tool on each target.
+    """Commands of the actuated joints (N, n_act) for which the calibrated model puts each row's target there.
 
-    targets_mm (N, 3): points in the measurement frame. seed_joints (N, n), internal units: the program's
-    joints (the nominal solution); the answer is the command nearest to them. locked: joint indices or
-    names that stay at their seed value (redundancy resolution by locking); with none, the redundant
-    joints follow the damped least-squares null-space pull toward the seed. columns: payload /
-    temperature / timestamp per target for the effects that need them (its joints are ignored).
+    targets_mm (N, 3): points in the measurement frame. seed_joints (N, n_act), internal units: the program's
+    actuated joints (the nominal solution); the answer is the command nearest to them. Coupled joints follow
+    their coupling at every iterate (a coupling is never broken) and fixed rows stay fixed. locked: actuated
+    joint indices or names that stay at their seed value (redundancy resolution by locking); with none, the
+    redundant joints follow the damped least-squares null-space pull toward the seed. columns: which model
+    target each row is (`target`), its setup, and payload / temperature / timestamp for the effects that need
+    them (its joints are ignored).
     Raises ValueError only for malformed input arrays; per-target failures are reported in the answer.
     """
     model = robot.model
-    n = model.n_joints
+    act = model.actuated
+    n = len(act)
+    A = model.coupling_matrix()  # (rows, n_act): the chain's joint Jacobian -> the actuated joints'
     T = np.asarray(targets_mm, float).reshape(-1, 3)
     seed = np.atleast_2d(np.asarray(seed_joints, float))
     if seed.shape != (len(T), n):
@@ -93,8 +97,9 @@ def compensate(
         raise ValueError(f"columns hold {columns.n_poses} rows for {len(T)} targets")
     N = len(T)
     lock = _joint_indices(model, locked)
-    lo, hi = model.limits[:, 0], model.limits[:, 1]
-    scale = np.where(model.prismatic, 1.0 / RAD_PER_MM, 1.0)
+    lo, hi = model.limits[act, 0], model.limits[act, 1]
+    scale = np.where(model.prismatic[act], 1.0 / RAD_PER_MM, 1.0)
+    names = model.actuated_names
 
     reason: list[str | None] = [None] * N
     ok = np.isfinite(T).all(1) & np.isfinite(seed).all(1)
@@ -104,8 +109,8 @@ def compensate(
     if lock:
         out = (seed[:, lock] < lo[lock]) | (seed[:, lock] > hi[lock])
         for i in np.flatnonzero(ok & out.any(1)):
-            names = ", ".join(model.joint_names[lock[k]] for k in np.flatnonzero(out[i]))
-            reason[i] = f"locked joint(s) {names}: seed outside the joint limits"
+            held = ", ".join(names[lock[k]] for k in np.flatnonzero(out[i]))
+            reason[i] = f"locked joint(s) {held}: seed outside the joint limits"
         ok &= ~out.any(1)
     ref = q.copy()  # the seed within the limits: what the null-space pull leads back to
 
@@ -122,7 +127,9 @@ def compensate(
         idx = np.flatnonzero(active)
         if not idx.size:
             break
-        p, J = _point_and_jacobian(robot, q[idx], _rows(columns, idx, q[idx]))
+        rows = model.expand_joints(q[idx])
+        p, J = _point_and_jacobian(robot, rows, _rows(columns, idx, rows))
+        J = J @ A
         e = T[idx] - p
         r = np.sqrt((e**2).sum(1))
         residual[idx] = r
@@ -153,7 +160,7 @@ def compensate(
     miss = np.flatnonzero(ok & ~reachable)
     q[miss], residual[miss] = best_q[miss], best_r[miss]
     for i in miss:
-        stuck = [model.joint_names[j] for j in np.flatnonzero(at_limit[i] & ((q[i] <= lo) | (q[i] >= hi)))]
+        stuck = [names[j] for j in np.flatnonzero(at_limit[i] & ((q[i] <= lo) | (q[i] >= hi)))]
         if stuck:
             where = f"needs {', '.join(stuck)} beyond {'its limit' if len(stuck) == 1 else 'their limits'}"
         elif residual[i] < 0.9 * prev[i]:
@@ -161,7 +168,7 @@ def compensate(
         else:
             where = "out of reach or at a singular pose"
         if lock:
-            where += f"; with {', '.join(model.joint_names[j] for j in lock)} locked"
+            where += f"; with {', '.join(names[j] for j in lock)} locked"
         reason[i] = f"not reachable: {residual[i]:.3f} mm left after {iterations[i]} iterations ({where})"
     return Compensation(joints=q, residual_mm=residual, reachable=reachable, reason=reason, iterations=iterations)
 
@@ -191,30 +198,41 @@ def nominal_to_calibrated(
     if nominal_model.joint_names != robot.model.joint_names:
         raise ValueError("the nominal model must have the calibrated robot's joints, in the same order")
     q = np.atleast_2d(np.asarray(program_joints, float))
-    targets = nominal_targets(robot, nominal_model, q)
+    targets = nominal_targets(robot, nominal_model, q, columns)
     return compensate(robot, targets, q, locked=locked, columns=columns, tol_mm=tol_mm, max_iter=max_iter)
 
 
-def nominal_targets(robot: CalibratedRobot, nominal_model: RobotModel, program_joints: np.ndarray) -> np.ndarray:
-    """Nominal tool points (N, 3) of the program in the measurement frame, via the calibrated base pose."""
-    n = robot.model.n_joints
-    base = robot.x[5 * n: 5 * n + 6]
-    Rb = K.base_rotation(base, robot.R0)
-    p_base = K.forward(nominal_model, K.nominal_vector(nominal_model), program_joints)
-    return p_base @ Rb.T + base[:3]
+def nominal_targets(robot: CalibratedRobot, nominal_model: RobotModel, program_joints: np.ndarray,
+                    columns: Measurements | None = None) -> np.ndarray:
+    """Nominal target points (N, 3) of the program (actuated joints) in the measurement frame, via the calibrated
+    base pose of each row's setup (`columns`: target and setup per row; default the first of each)."""
+    lay = K.layout(robot.model, robot.x)
+    labels = None if columns is None else columns.labels
+    setup = np.zeros(len(program_joints), int) if labels is None else labels.setup
+    at_base = None if labels is None else K.Labels(labels.target, np.zeros_like(labels.setup))
+    p_base = K.forward(nominal_model, K.nominal_vector(nominal_model), nominal_model.expand_joints(program_joints),
+                       None, at_base)
+    out = np.empty_like(p_base)
+    for s in np.unique(setup):
+        base = robot.x[lay.base(s)]
+        Rb = K.base_rotation(base, robot.R0 if robot.R0.ndim == 2 else robot.R0[s])
+        out[setup == s] = p_base[setup == s] @ Rb.T + base[:3]
+    return out
 
 
 def _joint_indices(model: RobotModel, joints: Sequence[int | str]) -> list[int]:
-    out = []
+    """Indices into the actuated joints of names or indices (coupled and fixed rows cannot be locked)."""
+    names, out = model.actuated_names, []
     for j in joints:
         if isinstance(j, str):
-            if j not in model.joint_names:
-                raise ValueError(f"unknown joint {j!r}; the model has {', '.join(model.joint_names)}")
-            out.append(model.joint_names.index(j))
+            if j not in names:
+                why = "it follows its coupling" if j in model.joint_names else "unknown joint"
+                raise ValueError(f"cannot lock {j!r} ({why}); the actuated joints are {', '.join(names)}")
+            out.append(names.index(j))
         else:
-            if not -model.n_joints <= int(j) < model.n_joints:
-                raise ValueError(f"joint index {j} out of range for {model.n_joints} joints")
-            out.append(int(j) % model.n_joints)
+            if not -len(names) <= int(j) < len(names):
+                raise ValueError(f"joint index {j} out of range for {len(names)} actuated joints")
+            out.append(int(j) % len(names))
     return sorted(set(out))
 
 
@@ -224,7 +242,8 @@ def _rows(columns: Measurements | None, idx: np.ndarray, q: np.ndarray) -> Measu
     if columns is None:
         return Measurements(joints=q, points=np.zeros((len(q), 3)))
     return Measurements(joints=q, points=np.zeros((len(q), 3)), timestamp=pick(columns.timestamp),
-                        temperature=pick(columns.temperature), payload=pick(columns.payload))
+                        temperature=pick(columns.temperature), payload=pick(columns.payload),
+                        target=pick(columns.target), setup=pick(columns.setup), setup_names=columns.setup_names)
 
 
 def _solve_3x3(Jz: np.ndarray, e: np.ndarray, Jpull: np.ndarray) -> np.ndarray:
@@ -245,8 +264,8 @@ def _solve_3x3(Jz: np.ndarray, e: np.ndarray, Jpull: np.ndarray) -> np.ndarray:
 def _point_and_jacobian(robot: CalibratedRobot, q: np.ndarray, cols: Measurements):
     """The calibrated prediction (exactly `robot.predict(q, cols)`) and dp/dq at the effective joints."""
     if not robot.effects:
-        ch = K.Chain(robot.model, robot.x, q, robot.R0)
+        ch = K.Chain(robot.model, robot.x, q, robot.R0, cols.labels)
         return ch.p, ch.joint_jacobian()
     dq, dp = robot.effect_offsets(q, cols)
-    ch = K.Chain(robot.model, robot.x, q + dq, robot.R0)
+    ch = K.Chain(robot.model, robot.x, q + dq, robot.R0, cols.labels)
     return ch.p + dp, ch.joint_jacobian()

@@ -345,3 +345,379 @@ def agile_justin(arm: str = "right", root: Path | str = SHARED_DATASETS) -> Data
              f"no masses; F_{arm.upper()}_BASE rotation (rounded 0.866) replaced by the nearest rotation; "
              f"licence none stated")
     return Dataset(f"agile_justin_{arm}", model, csv_text, notes)
+
+
+# --- contract section 5 helpers ----------------------------------------------------------------
+
+def _xyz_rpy(T: np.ndarray, digits: int = 12) -> tuple[list[float], list[float]]:
+    """A rigid 4x4 transform (m) as URDF xyz (m) and rpy (rad): Trans(xyz) Rz(y) Ry(p) Rx(r)."""
+    from .urdf import matrix_rpy
+
+    xyz = [round(float(v), digits) + 0.0 for v in T[:3, 3]]
+    rpy = [round(float(v), digits) + 0.0 for v in matrix_rpy(T[:3, :3])]
+    return xyz, rpy
+
+
+def quaternion_wxyz(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (N, 4) [w, x, y, z] with w >= 0 of rotation matrices (N, 3, 3) (Shepperd's method:
+    the largest of the four squared components is taken first, so every branch is well conditioned)."""
+    R = np.asarray(R, float).reshape(-1, 3, 3)
+    tr = np.trace(R, axis1=1, axis2=2)
+    diag = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], axis=1)
+    k = np.argmax(diag, axis=1)
+    q = np.empty((len(R), 4))
+    for i, (Ri, ki) in enumerate(zip(R, k)):
+        if ki == 0:
+            s = 2.0 * math.sqrt(max(1.0 + tr[i], 0.0))
+            q[i] = [0.25 * s, (Ri[2, 1] - Ri[1, 2]) / s, (Ri[0, 2] - Ri[2, 0]) / s, (Ri[1, 0] - Ri[0, 1]) / s]
+        else:
+            a = ki - 1
+            b, c = (a + 1) % 3, (a + 2) % 3
+            s = 2.0 * math.sqrt(max(1.0 + Ri[a, a] - Ri[b, b] - Ri[c, c], 0.0))
+            v = np.empty(3)
+            v[a] = 0.25 * s
+            v[b] = (Ri[b, a] + Ri[a, b]) / s
+            v[c] = (Ri[c, a] + Ri[a, c]) / s
+            q[i] = [(Ri[c, b] - Ri[b, c]) / s, *v]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return q * np.where(q[:, :1] < 0, -1.0, 1.0)
+
+
+def _data_limits(name: str, vendor: tuple[float, float] | None, lo_d: float, hi_d: float, pad: float,
+                 unit: str, scale: float, widened: list[str]) -> list[float] | None:
+    """The vendor limits, widened to the data range padded by `pad` where the data go beyond them (noted in
+    `widened`); values in the joint's unit, rounded outward to 9 decimals. `scale` converts to the note's unit."""
+    if vendor is None:
+        return None
+    lo, hi = vendor
+    if lo_d < lo or hi_d > hi:
+        new = (min(lo, lo_d - pad), max(hi, hi_d + pad))
+        widened.append(f"{name} [{lo * scale:g}, {hi * scale:g}] -> [{new[0] * scale:.1f}, {new[1] * scale:.1f}] {unit} "
+                       f"(data {lo_d * scale:.1f} .. {hi_d * scale:.1f})")
+        lo, hi = new
+    return [math.floor(lo * 1e9) / 1e9, math.ceil(hi * 1e9) / 1e9]
+
+
+def _iso(t: np.ndarray) -> np.ndarray:
+    from datetime import datetime, timezone
+
+    return np.array([datetime.fromtimestamp(float(v), timezone.utc).isoformat(timespec="milliseconds") for v in t],
+                    dtype=object)
+
+
+# --- DLR Agile Justin as one robot (contract section 5: tree, coupled joint, two targets) --------------------
+
+JUSTIN_FIXED = {"torso": "torso_base", "right": ("R_base", "R_tcp"), "left": ("L_base", "L_tcp")}
+"""Names of the fixed rows: F_TORSO_BASE, and per arm F_<ARM>_BASE (on the torso's last row) and F_TCP."""
+JUSTIN_TORSO_MASS = ((5.0, (0.0, 0.0, 0.0)), (8.0, (0.15, 0.0, 0.0)), (8.0, (0.15, 0.0, 0.0)),
+                     (15.0, (0.15, 0.05, 0.0)))
+"""GUESSED lumped masses (kg) and centres of mass (m, in each torso row's MD-H frame) of the torso bodies moved by
+T1, T2, T3 and T4c (T4c: upper torso and head), from benchmarks/justin_reference.py. Not published by DLR."""
+JUSTIN_ARM_LINK_KG = 2.0
+"""GUESSED mass of each arm link (kg), its centre of mass in the middle of the link's d segment."""
+JUSTIN_HAND_KG = 2.0
+"""GUESSED mass of each hand (kg), at the TCP frame's origin."""
+JUSTIN_VENDOR_LIMITS_NOTE = ("vendor limits (deg): torso [-120, 120], [-90, 90], [0, 135]; arm [-170, 170], "
+                             "[-120, 120], [-170, 170], [-120, 120], [-170, 170], [-45.1, 80], [-45, 135]")
+
+
+def agile_justin_tree(root: Path | str = SHARED_DATASETS, *, limits: str = "data", masses: bool = True) -> Dataset:
+    """DLR Agile Justin as ONE robot: torso, both 7-DoF arms as branches, one Vicon marker per hand.
+
+    Source files: ``dlr_agile_justin/justin19_nominal.yaml`` (rokin's modified-DH tables ``[d, theta, a, alpha]``,
+    the static frames, m/rad) and ``measurements_flat.csv`` (19 commanded joint angles, rad; right and left hand
+    marker in the Vicon frame, m). Contract section 5 model (``"mdh"``, m/rad), nothing folded by hand:
+
+    * ``torso_base``: fixed row, ``xyz``/``rpy`` = F_TORSO_BASE; then T1 (pan), T2, T3 (tilts) as MD-H rows
+      (rokin's ``Rx(alpha) Tx(a) Rz(theta + q) Tz(d)`` is the contract's MD-H row as it stands).
+    * T4c: the passive torso joint, ``"coupled": {"T2": -1, "T3": -1}`` (q = -q1 - q2): no CSV column.
+    * Per arm: ``R_base`` / ``L_base`` fixed rows with ``"parent": "T4c"`` and ``xyz``/``rpy`` = F_<ARM>_BASE
+      (its rotation, published rounded to 0.866 = cos 30 deg, replaced by the nearest rotation), the 7 arm rows
+      (MD-H), then ``R_tcp`` / ``L_tcp`` fixed rows = F_TCP.
+    * ``targets``: ``right`` on ``R_tcp`` at [-0.1, -0.03, 0.1] m, ``left`` on ``L_tcp`` at [-0.1, 0.03, 0.05] m
+      (the dataset site's initial guesses, in the TCP frame).
+    * CSV: two rows per recorded pose (points ``<idx>-right`` and ``<idx>-left``, ``target`` column), joints
+      T1..T3, R1..R7, L1..L7 (rad), ``x,y,z`` (m, Vicon frame), ``sigma`` 0.0002 m (0.2 mm per axis, see
+      ``JUSTIN_SIGMA_MM``). Head joints (q17, q18) are 0 throughout and not modelled.
+
+    Limits (``limits=``):
+      ``"data"`` (default): the vendor limits, widened to the data range padded by 5 deg where the robot really
+      went beyond them (only the torso pan T1: the data reach -130.4 .. 199 deg against the vendor's +-120), so
+      the CSV uploads with the default ``?limits=reject`` and nothing is rejected. The notes list what was widened.
+      ``"vendor"``: the vendor limits as published; T1 of 178 of the 500 poses (356 of the 1000 rows) lies outside
+      them, so upload that CSV with ``POST /robots/{id}/measurements?limits=warn`` (``calib demo --limits
+      warn``), which accepts the rows and reports the extent (the default ``?limits=reject`` refuses the file).
+
+    Masses (``masses=True``): GUESSES, not published by DLR (benchmarks/justin_reference.py): torso 5 / 8 / 8 /
+    15 kg (T1 / T2 / T3 / T4c, the last with the head), 2 kg per arm link at the middle of its d segment, 2 kg per
+    hand at the TCP; mount rows 0 kg. Gravity -z of the robot base (the Vicon frame is z up; T_c0 turns about z).
+    Joint values are commanded; the robot is visibly elastic (21 mm before calibration in the paper).
+    """
+    import yaml as _yaml
+
+    if limits not in ("data", "vendor"):
+        raise ValueError(f"limits must be 'data' or 'vendor', not {limits!r}")
+    from .frames import nearest_rotation
+
+    folder = _folder(root, JUSTIN_DIR)
+    y = _yaml.safe_load((folder / "justin19_nominal.yaml").read_text())
+    cols = _read_columns(folder / "measurements_flat.csv")
+    lim_deg = y["joint_limits_deg"]
+    pad = math.radians(JUSTIN_LIMIT_PAD_DEG)
+    widened: list[str] = []
+
+    def mdh(name: str, row, q: np.ndarray | None, vendor_deg) -> dict:
+        d, theta, a, alpha = (float(v) for v in row)
+        out = {"name": name, "type": "revolute", "a": a, "alpha": alpha, "d": d, "theta": theta, "beta": 0.0}
+        if vendor_deg is not None:
+            vendor = (math.radians(vendor_deg[0]), math.radians(vendor_deg[1]))
+            out["limits"] = (_data_limits(name, vendor, float(q.min()), float(q.max()), pad, "deg",
+                                          180.0 / math.pi, widened)
+                             if limits == "data" else [vendor[0], vendor[1]])
+        return out
+
+    def fixed(name: str, T, parent: str | None = None) -> dict:
+        xyz, rpy = _xyz_rpy(np.asarray(T, float))
+        out = {"name": name, "type": "fixed", "xyz": xyz, "rpy": rpy}
+        if parent is not None:
+            out["parent"] = parent
+        return out
+
+    q_torso = [cols["q0"], cols["q1"], cols["q2"]]
+    rows = [fixed(JUSTIN_FIXED["torso"], y["F_TORSO_BASE"])]
+    for k, name in enumerate(JUSTIN_TORSO[:3]):
+        rows.append(mdh(name, y["DH_TORSO"][k], q_torso[k], lim_deg["torso"][k]))
+    t4 = mdh(JUSTIN_TORSO[3], y["DH_TORSO"][3], None, None)
+    t4["coupled"] = {JUSTIN_TORSO[1]: -1.0, JUSTIN_TORSO[2]: -1.0, "offset": 0.0}
+    rows.append(t4)
+    masses_of = {JUSTIN_FIXED["torso"]: (0.0, (0.0, 0.0, 0.0))}
+    masses_of.update({n: m for n, m in zip(JUSTIN_TORSO, JUSTIN_TORSO_MASS)})
+    for arm in ("right", "left"):
+        base_name, tcp_name = JUSTIN_FIXED[arm]
+        rows.append(fixed(base_name, nearest_rotation(y[f"F_{arm.upper()}_BASE"]), parent=JUSTIN_TORSO[3]))
+        masses_of[base_name] = (0.0, (0.0, 0.0, 0.0))
+        for k, (name, i) in enumerate(zip(JUSTIN_ARMS[arm], JUSTIN_Q[arm])):
+            row = y[f"DH_{arm.upper()}"][k]
+            rows.append(mdh(name, row, cols[f"q{i}"], lim_deg["arm"][k]))
+            masses_of[name] = (JUSTIN_ARM_LINK_KG, (0.0, 0.0, -0.5 * float(row[0])))
+        rows.append(fixed(tcp_name, y["F_TCP"]))
+        masses_of[tcp_name] = (JUSTIN_HAND_KG, (0.0, 0.0, 0.0))
+    if masses:
+        for r in rows:
+            m, com = masses_of[r["name"]]
+            r["mass"], r["com"] = m, [float(c) + 0.0 for c in com]
+    targets = [{"name": arm, "parent": JUSTIN_FIXED[arm][1], "xyz": list(JUSTIN_MARKER_M[arm])}
+               for arm in ("right", "left")]
+    model = {"name": "dlr_agile_justin", "convention": "mdh", "units": {"length": "m", "angle": "rad"},
+             "joints": rows, "targets": targets, "gravity": [0.0, 0.0, -9.81]}
+
+    names = JUSTIN_TORSO[:3] + JUSTIN_ARMS["right"] + JUSTIN_ARMS["left"]
+    q = np.column_stack([cols[f"q{i}"] for i in range(17)])
+    idx = [str(int(i)) for i in cols["idx"]]
+    n = len(idx)
+    q2 = np.repeat(q, 2, axis=0)
+    xyz = np.empty((2 * n, 3))
+    xyz[0::2] = np.column_stack([cols[f"right_{c}"] for c in "xyz"])
+    xyz[1::2] = np.column_stack([cols[f"left_{c}"] for c in "xyz"])
+    points = [f"{i}-{arm}" for i in idx for arm in ("right", "left")]
+    target = np.array(["right", "left"] * n, dtype=object)
+    sigma = np.full(2 * n, JUSTIN_SIGMA_MM / 1000.0)
+    csv_text = _csv_text(points, names, q2, xyz, {"target": (target, "{}"), "sigma": (sigma, "{:g}")},
+                         q_fmt="{:.12g}", xyz_fmt="{:.10g}")
+    lim_note = (f"limits widened to the data (+-{JUSTIN_LIMIT_PAD_DEG:g} deg): {'; '.join(widened) or 'none'}"
+                if limits == "data" else
+                "vendor limits kept: upload with ?limits=warn (calib demo --limits warn), T1 goes to 199 deg")
+    notes = ("DLR Agile Justin as one robot (torso T1-T3 + passive T4c coupled = -T2 - T3, right and left arm as "
+             "branches on T4c), dlr-alr/dlr-elastic-calibration measurements.csv (commit 35149b7, 500 poses x 2 "
+             "markers = 1000 rows with a target column; commanded joints rad; Vicon m) with rokin justin19 nominal "
+             "modified DH as MD-H rows; F_TORSO_BASE, F_<ARM>_BASE (nearest rotation to the rounded 0.866) and F_TCP "
+             "as fixed xyz/rpy rows; markers right [-0.1, -0.03, 0.1], left [-0.1, 0.03, 0.05] m in the TCP "
+             f"frames (site's initial guesses); units m/rad; {lim_note}; {JUSTIN_VENDOR_LIMITS_NOTE}; "
+             f"sigma {JUSTIN_SIGMA_MM} mm per axis (Vicon); gravity -z of the robot base; "
+             + ("masses GUESSED (torso 5/8/8/15 kg, 2 kg per arm link, 2 kg per hand; not published)"
+                if masses else "no masses") + "; licence none stated")
+    return Dataset("dlr_agile_justin", model, csv_text, notes)
+
+
+# --- Hilti Trailblazer (contract section 5: URDF-style rows, mimic column, setups) -------------------------
+
+HILTI_DIR = "hilti_trailblazer"
+HILTI_FILES = ("flat", "pallet", "orthogonal_wood", "wood_left_track", "seesaw", "diagonal_wood", "outdoor")
+"""The seven recordings, one base placement each (setup), in the order of the dataset README."""
+HILTI_TEMPERATURE_C = {"outdoor": 9.0}
+"""Air temperature per recording (README): 21 deg C except outdoor, 9 deg C; the files have no temperature field."""
+HILTI_DEFAULT_TEMPERATURE_C = 21.0
+HILTI_SIGMA_MM = 0.75
+"""Per-axis 1-sigma of the Hilti PLT 300 total station (datasheet, dataset README)."""
+HILTI_BASE, HILTI_TARGET = "base_link", "prism"
+HILTI_LIMIT_PAD_RAD = math.radians(2.0)
+
+
+def hilti_available(root: Path | str = SHARED_DATASETS) -> bool:
+    folder = Path(root) / HILTI_DIR
+    return (folder / "trailblazer.urdf").is_file() and all((folder / f"{f}.yaml").is_file() for f in HILTI_FILES)
+
+
+def _urdf_rows(text: str, base: str, target: str) -> tuple[list[dict], dict, dict]:
+    """A URDF's chain from `base` to the link `target` as contract section 5 rows (m, rad): every joint on the
+    way as it stands (fixed joints as fixed rows, origin as ``xyz``/``rpy``, ``axis``), mimic joints as
+    ``coupled`` rows, and a mimicked joint that is not on the way (a leaf) as its own row on its parent link so
+    that its CSV column exists. The fixed joint into `target` becomes the target point on its parent row.
+    Each row's ``mass``/``com`` is its child link's inertial (other side branches are left out).
+    Returns (rows, target {name, parent, xyz}, raw limits {row: (lo, hi)})."""
+    import xml.etree.ElementTree as ET
+
+    if "<!DOCTYPE" in text:
+        raise ValueError("URDF with a DOCTYPE refused")
+    root_el = ET.fromstring(text)
+    num = lambda s, n=3: [float(v) for v in (s or " ".join(["0"] * n)).split()]  # noqa: E731
+    inertial = {}
+    for link in root_el.findall("link"):
+        el = link.find("inertial")
+        if el is not None:
+            o = el.find("origin")
+            inertial[link.get("name")] = (float(el.find("mass").get("value")),
+                                          num(None if o is None else o.get("xyz")))
+    joints = {}
+    for j in root_el.findall("joint"):
+        o, ax, lim, mim = j.find("origin"), j.find("axis"), j.find("limit"), j.find("mimic")
+        joints[j.get("name")] = {
+            "name": j.get("name"), "type": j.get("type"), "parent": j.find("parent").get("link"),
+            "child": j.find("child").get("link"),
+            "xyz": num(None if o is None else o.get("xyz")), "rpy": num(None if o is None else o.get("rpy")),
+            "axis": [1.0, 0.0, 0.0] if ax is None else num(ax.get("xyz")),
+            "limits": None if lim is None else (float(lim.get("lower")), float(lim.get("upper"))),
+            "mimic": None if mim is None else (mim.get("joint"), float(mim.get("multiplier", 1.0)),
+                                               float(mim.get("offset", 0.0)))}
+    by_child = {j["child"]: j for j in joints.values()}
+    path, link = [], target
+    while link != base:
+        if link not in by_child:
+            raise ValueError(f"link {link!r} is not connected to {base!r}")
+        path.append(by_child[link])
+        link = by_child[link]["parent"]
+    path.reverse()
+    last = path.pop()  # the fixed joint into the target link: the target point
+    if last["type"] != "fixed":
+        raise ValueError(f"the target link {target!r} must hang on a fixed joint")
+    on_path = {j["name"] for j in path}
+    for j in list(path):  # a mimicked joint off the path gets a row of its own (a leaf with the CSV column)
+        if j["mimic"] is not None and j["mimic"][0] not in on_path:
+            src = joints[j["mimic"][0]]
+            path.insert(path.index(j), src)
+            on_path.add(src["name"])
+    row_of_link = {base: "base"}
+    rows, raw_limits = [], {}
+    for k, j in enumerate(path):
+        row = {"name": j["name"], "type": "fixed" if j["type"] == "fixed" else
+               "prismatic" if j["type"] == "prismatic" else "revolute"}
+        parent = row_of_link[j["parent"]]
+        if parent != (rows[-1]["name"] if rows else "base"):
+            row["parent"] = parent
+        row["xyz"], row["rpy"] = j["xyz"], j["rpy"]
+        if row["type"] != "fixed":
+            row["axis"] = j["axis"]
+            if j["limits"] is not None:
+                raw_limits[j["name"]] = j["limits"]
+                row["limits"] = list(j["limits"])
+        if j["mimic"] is not None:
+            src, mult, off = j["mimic"]
+            row["coupled"] = {src: mult, "offset": off}
+        m, com = inertial.get(j["child"], (0.0, [0.0, 0.0, 0.0]))
+        row["mass"], row["com"] = m, com
+        rows.append(row)
+        row_of_link.setdefault(j["child"], j["name"])
+    tgt = {"name": target, "parent": row_of_link[last["parent"]], "xyz": last["xyz"]}
+    return rows, tgt, raw_limits
+
+
+def _hilti_rows(path: Path) -> list[dict]:
+    """Every measurement of one recording: height, IK solution space, stationing / evaluation, the YAML fields."""
+    import yaml as _yaml
+
+    loader = getattr(_yaml, "CSafeLoader", _yaml.SafeLoader)
+    doc = _yaml.load(path.read_text(), Loader=loader)
+    out = []
+    for h, hv in doc["column_heights"].items():
+        for s, sv in hv["solution_spaces"].items():
+            for kind in ("stationing_measurements", "evaluation_measurements"):
+                for m in sv.get(kind) or []:
+                    out.append({"height": float(h), "space": int(s), "kind": kind.split("_")[0], **m})
+    return out, doc["joint_names"]
+
+
+def hilti_trailblazer(root: Path | str = SHARED_DATASETS, *, files: tuple[str, ...] = HILTI_FILES,
+                      setup_by: str = "file") -> Dataset:
+    """Hilti Trailblazer (JaiBot prototype): lifting column + Doosan M1013, a total station's prism, 7 base setups.
+
+    Source files: ``hilti_trailblazer/trailblazer.urdf`` (CAD kinematics and inertials, m/rad/kg) and the seven
+    recordings ``<name>.yaml`` (joint states m/rad, ``prism_position`` m in the total-station frame, unix time).
+    Licence CC BY-NC-SA 3.0 (non-commercial, share alike): the converted files carry it too.
+
+    Model (contract section 5, ``"mdh"`` with URDF-style rows, m/rad): the URDF chain base_link -> prism joint by
+    joint (:func:`_urdf_rows`): fixed joints as ``"type": "fixed"`` rows with ``xyz``/``rpy``; the lifting column's
+    actuated ``column_prismatic_joint`` (in the URDF a leaf: it only moves ``column_pseudo_tip``) as its own row
+    on ``column_base``, so its CSV column exists; the telescope stages ``column_middle_joint`` and
+    ``column_top_joint`` as ``coupled`` rows (URDF mimic: 0.5 q - 0.706 m and 0.5 q - 0.736 m, no CSV column);
+    ``dsr_joint1..6``; ``dsr_tool_to_tool``; the target ``prism`` at the ``prism_calib`` offset (already a
+    calibrated value in the URDF) in ``tool_link``. Masses and centres of mass are each row's child link
+    inertial from the URDF (CAD); side branches (tracks_compartments, 0.1 kg) are left out. Gravity -z of
+    base_link; the seesaw / wooden-slab setups tilt the base a little (the accelerometers show it; not modelled).
+    Limits: the URDF's, widened by the data + 2 deg where the data go beyond (dsr_joint3 reaches 2.819 rad
+    against 2.7925); the notes list it.
+
+    CSV: one row per measurement (stationing and evaluation alike), ``point`` =
+    ``<file>/h<height>/s<solution space>/<stationing|evaluation><id>``, the 7 joints (m, rad), ``x,y,z`` (m),
+    ``setup``, ``timestamp`` (ISO 8601, UTC), ``temperature`` (21 deg C, outdoor 9; README), ``sigma`` 0.00075 m
+    (0.75 mm per axis, datasheet). Not carried: the two accelerometers, ``doosan_cmd``, ``upside_down``.
+
+    ``setup_by="file"`` (default): one base placement per recording (7 setups; the robot stands still within a
+    recording). ``"station"``: one per column height x IK solution space, as the dataset's stationing does (15 per
+    recording, 105 in all): it absorbs deflection the per-file base cannot and leaves far fewer poses per base.
+    """
+    if setup_by not in ("file", "station"):
+        raise ValueError(f"setup_by must be 'file' or 'station', not {setup_by!r}")
+    unknown = [f for f in files if f not in HILTI_FILES]
+    if unknown:
+        raise ValueError(f"unknown Hilti recordings {unknown}; available: {list(HILTI_FILES)}")
+    folder = _folder(root, HILTI_DIR)
+    rows, target, raw_limits = _urdf_rows((folder / "trailblazer.urdf").read_text(), HILTI_BASE, HILTI_TARGET)
+    recs = []
+    joint_names = None
+    for f in files:
+        r, jn = _hilti_rows(folder / f"{f}.yaml")
+        joint_names = joint_names or jn
+        if jn != joint_names:
+            raise ValueError(f"{f}.yaml names its joints {jn}, not {joint_names}")
+        recs += [{**m, "file": f} for m in r]
+    q = np.array([m["joint_states"] for m in recs], float)
+    widened: list[str] = []
+    for row in rows:
+        if row["name"] in joint_names and "limits" in row:
+            k = joint_names.index(row["name"])
+            prism = row["type"] == "prismatic"
+            row["limits"] = _data_limits(row["name"], raw_limits[row["name"]], float(q[:, k].min()),
+                                         float(q[:, k].max()), 0.01 if prism else HILTI_LIMIT_PAD_RAD,
+                                         "m" if prism else "rad", 1.0, widened)
+    model = {"name": "hilti_trailblazer", "convention": "mdh", "units": {"length": "m", "angle": "rad"},
+             "joints": rows, "targets": [target], "gravity": [0.0, 0.0, -9.81]}
+    xyz = np.array([m["prism_position"] for m in recs], float)
+    points = [f"{m['file']}/h{m['height']:.2f}/s{m['space']}/{m['kind']}{m['id']}" for m in recs]
+    if setup_by == "file":
+        setup = np.array([m["file"] for m in recs], dtype=object)
+    else:
+        setup = np.array([f"{m['file']}/h{m['height']:.2f}/s{m['space']}" for m in recs], dtype=object)
+    temp = np.array([HILTI_TEMPERATURE_C.get(m["file"], HILTI_DEFAULT_TEMPERATURE_C) for m in recs])
+    extra = {"setup": (setup, "{}"), "timestamp": (_iso(np.array([m["time"] for m in recs])), "{}"),
+             "temperature": (temp, "{:g}"), "sigma": (np.full(len(recs), HILTI_SIGMA_MM / 1000.0), "{:g}")}
+    csv_text = _csv_text(points, tuple(joint_names), q, xyz, extra, q_fmt="{:.12g}", xyz_fmt="{:.10g}")
+    notes = (f"Hilti Trailblazer (lifting column + Doosan M1013), Hilti-Research/construction_robot_stationing_datasets "
+             f"f26546d, {len(recs)} measurements of {len(files)} recordings ({', '.join(files)}), total-station prism "
+             f"in m; model from trailblazer.urdf joint by joint (fixed rows, xyz/rpy/axis rows, telescope stages as "
+             f"coupled rows 0.5 q - 0.706 / 0.5 q - 0.736 m, column_prismatic_joint as its own leaf row, target prism at "
+             f"prism_calib in tool_link), masses/com = URDF inertials (CAD); setup per {setup_by} "
+             f"({len(dict.fromkeys(setup))} setups); temperature 21 deg C (outdoor 9, README); sigma "
+             f"{HILTI_SIGMA_MM} mm per axis (PLT 300 datasheet); limits widened to the data: "
+             f"{'; '.join(widened) or 'none'}; accelerometers, doosan_cmd and upside_down not carried; "
+             f"units m/rad; LICENCE CC BY-NC-SA 3.0 (non-commercial, share alike)")
+    return Dataset("hilti_trailblazer", model, csv_text, notes)

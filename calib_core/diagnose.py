@@ -20,7 +20,8 @@ import numpy as np
 from scipy import optimize, stats
 
 from . import kinematics as K
-from .effects import Backlash, Context, Effect, JointCompliance, LoadCompliance, SessionStep, candidates
+from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance, SessionStep, candidates, has_loads,
+                      loads)
 from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, _as_tuple, gravity_regressor, lateral_axes,
                               load_mix_for, payload_load)
 from .kinematics import _cross
@@ -29,7 +30,6 @@ from .effects.structure import probes, session_clock, step_candidates
 from .identify import Calibration, effect_bases, identify
 from .select import select_geometry
 from .solve import OUTLIER_U
-from .statics import joint_loads
 from .io import Measurements
 from .model import RobotModel
 
@@ -387,9 +387,8 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     as the load grows)."""
     better = []
     loads_max = None
-    if fit.model.has_mass:
-        loads_max = np.abs(joint_loads(K.Chain(model, x_ref, fit.meas.joints, None, fit.meas.labels),
-                                       fit.meas.payload_kg())).max(0)
+    if has_loads(fit.model, fit.meas):
+        loads_max = np.abs(loads(K.Chain(model, x_ref, fit.meas.joints, None, fit.meas.labels), fit.meas)).max(0)
     tried = []
     for alt in _refinements(c.effect, load_pool, play_pool, loads_max):
         try:
@@ -542,7 +541,7 @@ def _lateral(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
     for j in range(model.n_joints):
         pair = []
         for axis in lateral_axes(ref, j):
-            move = _cross(axis, chain.p - ref.o_beta[j])
+            move = _cross(axis, chain.p - ref.o_beta[j]) * ref.on_path[j][:, None]
             M = load_mix_for(ref, j, Q, move, sigma, axis=axis, max_terms=MAX_LATERAL_TERMS)
             pair.append(() if M is None else _as_tuple(M))
         if any(pair):
@@ -573,8 +572,8 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
     ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
     ref_ctx = Context(model, ref, meas)
     nominal = None
-    if model.has_mass:
-        nominal = joint_loads(ref, meas.payload_kg())
+    if has_loads(model, meas):
+        nominal = ref_ctx.loads
     out = []
     for j in joints:
         F = np.column_stack([gravity_regressor(ref, j), payload_load(ref, meas.payload_kg(), j)])
@@ -673,17 +672,17 @@ def _play_not_outliers(first: Calibration, meas: Measurements) -> bool:
     """The poses a robust fit flags as outliers may be the few where a joint's load changes sign, shifted by
     its gear play: then they are structure for the search, not outliers to down-weight."""
     model, out = first.model, first.solution.outliers
-    if not model.has_mass or len(out) < 2:
+    if not has_loads(model, meas) or len(out) < 2:
         return False
-    loads = joint_loads(K.Chain(model, first.x, meas.joints, first.R0, meas.labels), meas.payload_kg())
+    load = loads(K.Chain(model, first.x, meas.joints, first.R0, meas.labels), meas)
     for j in range(model.n_joints):
-        sign = np.sign(loads[:, j])
+        sign = np.sign(load[:, j])
         minority = sign == (1.0 if (sign > 0).sum() < (sign < 0).sum() else -1.0)
         flagged = out[np.isin(out, np.flatnonzero(minority))]  # flagged poses on the minority side of the load
         both = len(flagged)
         if not 0 < minority.sum() <= 0.25 * meas.n_poses or both < 0.5 * len(out) or both < 0.5 * minority.sum():
             continue
-        play = Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * np.abs(loads[:, j]).max()))
+        play = Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * np.abs(load[:, j]).max()))
         with_play = identify(model, meas, effects=(play,), folds=0, x_ref=first.x)  # plain: the play must fit them
         d = np.linalg.norm(with_play.solution.residual, axis=1)
         u = d / np.sqrt(np.median(d**2) / 2.366)  # in robust sigmas of a 3-D residual (median chi2(3) = 2.366)
@@ -709,8 +708,8 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
     model = cal.model
     fams = probes(model, meas)
     fams += _distributed(load_pool) if load_pool else []
-    if model.has_mass:
-        loaded = [j for j in range(model.n_joints) if j in load_pool] or list(range(model.n_joints))
+    if has_loads(model, meas):
+        loaded = [j for j in range(model.n_joints) if j in load_pool] or list(np.flatnonzero(model.moving))
         fams.append(JointCompliance(tuple(loaded)))
     steps = step_candidates(meas, [])
     ranked, _ = screen(cal, meas, sigma, fams + steps, x_ref, alpha)

@@ -51,6 +51,7 @@ class CalibratedRobot:
     effects: tuple[Effect, ...] = ()
     effect_values: tuple[np.ndarray, ...] = ()
     x_basis: np.ndarray | None = None  # the geometry the effect bases were fitted on (default: x)
+    setup_names: tuple[str, ...] = ("",)  # one base pose per setup, in this order
 
     def effect_offsets(self, joints: np.ndarray, columns: Measurements | None = None):
         """Joint offsets (N, n) and displacements (N, 3) mm of the identified effects at these joints, with
@@ -78,6 +79,8 @@ class CalibratedRobot:
                "effects": [effect_state(e, v) for e, v in zip(self.effects, self.effect_values)]}
         if self.x_basis is not None:
             out["x_basis"] = self.x_basis.tolist()
+        if len(self.setup_names) > 1:
+            out["setup_names"] = list(self.setup_names)
         return out
 
     @classmethod
@@ -86,7 +89,7 @@ class CalibratedRobot:
         basis = state.get("x_basis")
         return cls(model, np.array(state["x"], float), np.array(state["R0"], float),
                    tuple(e for e, _ in effects), tuple(v for _, v in effects),
-                   None if basis is None else np.array(basis, float))
+                   None if basis is None else np.array(basis, float), tuple(state.get("setup_names", ("",))))
 
 
 def _columns(joints: np.ndarray, columns: Measurements | None) -> Measurements:
@@ -130,7 +133,7 @@ class Calibration:
     @property
     def robot(self) -> CalibratedRobot:
         return CalibratedRobot(self.model, self.x, self.R0, self.effects, self.effect_values,
-                               self.x_basis if self.effects else None)
+                               self.x_basis if self.effects else None, self.setup_names)
 
     def predict(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
         """Measured point (N, 3) mm for joints (N, n) in internal units."""
@@ -255,8 +258,8 @@ def _prior_std(model: RobotModel, prior_scale: float = 1.0, n_setups: int = 1) -
 def _select(names: list[str], ident: Identifiability, free: tuple[str, ...] | None) -> np.ndarray:
     keep = ident.identifiable
     if free is not None:
-        keep = [i for i in keep if any(names[i] == f or names[i].startswith(f + ".") for f in free)]
-    return np.array(sorted(keep))
+        keep = [i for i in keep if any(names[i] == f or names[i].startswith((f + ".", f + "[")) for f in free)]
+    return np.array(sorted(keep), dtype=int)
 
 
 def model_error_sigma(residual: np.ndarray, sigma: np.ndarray, n_params: int, weights: np.ndarray) -> float:

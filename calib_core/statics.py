@@ -11,7 +11,7 @@ from .kinematics import Chain, _cross
 
 
 def gravity_world(chain: Chain) -> np.ndarray:
-    """Gravity (3,) m/s^2 in the measurement frame."""
+    """Gravity m/s^2 in the measurement frame: (3,), or (N, 3) per pose when the poses span several setups."""
     return chain.Rb @ chain.model.gravity
 
 
@@ -21,13 +21,18 @@ def com_world(chain: Chain) -> np.ndarray:
 
 
 def distal_loads(chain: Chain, payload_kg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mass (n, N) kg and first moment (n, N, 3) kg*mm of everything beyond joint j (bodies j..n, payload)."""
+    """Mass (n, N) kg and first moment (n, N, 3) kg*mm of everything row j carries: its descendants in the tree
+    and the payload at the measured target when j is on the way to it."""
     m = chain.model.mass
     com = com_world(chain)
     first = m[:, None, None] * com
-    M = np.cumsum(m[::-1])[::-1][:, None] + payload_kg[None, :]
-    S = np.cumsum(first[::-1], axis=0)[::-1] + payload_kg[None, :, None] * chain.p[None]
-    return M, S
+    if chain.model.is_serial:
+        M = np.cumsum(m[::-1])[::-1][:, None] + payload_kg[None, :]
+        S = np.cumsum(first[::-1], axis=0)[::-1] + payload_kg[None, :, None] * chain.p[None]
+        return M, S
+    D = chain.model.ancestors().T.astype(float)  # [j, k]: row k is carried by row j (or is j)
+    pay = chain.on_path * payload_kg[None, :]
+    return (D @ m)[:, None] + pay, np.einsum("jk,kna->jna", D, first) + pay[..., None] * chain.p[None]
 
 
 def joint_loads(chain: Chain, payload_kg: np.ndarray) -> np.ndarray:
@@ -41,12 +46,13 @@ def joint_loads(chain: Chain, payload_kg: np.ndarray) -> np.ndarray:
     M, S = distal_loads(chain, payload_kg)
     moment = _cross(S - M[..., None] * chain.o_theta, np.broadcast_to(g, S.shape)) / 1000.0  # N*m
     torque = np.einsum("jna,jna->jn", moment, chain.z_axis)
-    force = M * np.einsum("jna,a->jn", chain.z_axis, g)
+    force = M * (chain.z_axis * g).sum(-1)
     return np.where(chain.model.prismatic[:, None], force, torque).T
 
 
 def segment(chain: Chain, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The link segment ending at joint k: start (N, 3), end (N, 3) and length (N,) mm."""
-    start = chain.o_beta[k - 1] if k > 0 else np.broadcast_to(chain.base_origin, chain.p.shape)
+    """The link segment ending at row k (from its parent's origin): start (N, 3), end (N, 3) and length (N,) mm."""
+    par = chain.model.parents[k]
+    start = chain.o_beta[par] if par >= 0 else np.broadcast_to(chain.base_origin, chain.p.shape)
     end = chain.o_beta[k]
     return start, end, np.linalg.norm(end - start, axis=1)

@@ -1,32 +1,48 @@
-"""URDF in and out (contract section 5) for serial chains.
+"""URDF in and out (contract section 5): serial chains, trees, fixed and mimic joints.
 
-:func:`parse_urdf` reads a URDF, picks the chain from a base link to a target link, folds every joint
-(origin xyz/rpy, any axis, fixed joints in between) exactly into contract MD-H rows with
-:func:`calib_core.frames.fold_links` and writes contract model JSON; :func:`to_urdf` writes a model (or a
-calibrated model) back as a URDF whose joint origins carry the MD-H rows.
+:func:`parse_urdf` reads a URDF, picks the joints from a base link to one or more target links and writes
+contract model JSON in one of two forms; :func:`to_urdf` writes a model (or a calibrated model) back as a URDF.
+
+* MD-H form (``form="mdh"``; the default for one target whose chain has no mimic joint): every joint (origin
+  xyz/rpy, any axis, fixed joints in between) folded exactly into contract MD-H rows with
+  :func:`calib_core.frames.fold_links`, one row per movable joint.
+* xyz form (``form="xyz"``; the default for several targets or a mimic joint on the way): one row per URDF
+  joint, given the URDF way (``xyz``/``rpy`` of the joint origin in the parent joint's child-link frame,
+  ``axis``), ``parent`` where a row does not follow the one before it (trees), URDF ``fixed`` joints as
+  ``type: fixed`` rows, ``mimic`` joints as ``coupled`` rows, one target per target link at its link origin.
+  A mimic joint's source joint is taken in too when it is off the paths to the targets (the Hilti column: the
+  measured stages mimic a stage that carries nothing), so its value is the CSV column.
 
 Conventions
 
 * URDF is always m and rad. The model is written in ``length_unit`` / ``angle_unit`` (default m / rad).
 * A joint's child frame is ``parent @ origin(xyz, rpy) @ motion(axis, q)`` with ``R(rpy) = Rz(y) Ry(p) Rx(r)``
-  (fixed axes). The axis need not be z: the frame is turned so that the axis is its z (:func:`align_z`),
-  and the turn is undone in front of the next joint.
-* ``continuous`` joints are revolute with limits of +-``CONTINUOUS_LIMIT_RAD`` (the model wants limits for
-  sampling and compensation; one turn each way covers every orientation).
-* Nearly parallel consecutive axes (within ``PARALLEL_SIN``) are folded in Hayati's form (``beta``).
-* Gravity is -z of the URDF base link (9.81 m/s^2), rotated into the MD-H base frame.
-* Masses: the body moved by joint i is its child link plus every link fixed to it (through ``fixed``
-  joints, side branches included); its mass is the sum and its centre of mass is written in the joint's
-  MD-H frame. Links behind a movable joint that is not on the chain are not counted (trees: later).
-* What MD-H cannot say about the URDF frames goes into the model's ``"urdf"`` object (an extension; the
-  contract's parsers ignore it): the URDF base and target link names, the pose of the MD-H base frame in the
-  URDF base link (``base_xyz``, ``base_rpy``) and the orientation of the target link in the last MD-H frame
-  (``tool_rpy``), both in model units, which joints were ``continuous`` and their effort / velocity limits.
-  :func:`to_urdf` uses it, so URDF -> model -> URDF keeps the base and target link frames, not only the
-  point.
+  (fixed axes). In the MD-H form the frame is turned so that the axis is its z (:func:`align_z`), and the turn
+  is undone in front of the next joint.
+* ``continuous`` joints: MD-H form, revolute with limits of +-``CONTINUOUS_LIMIT_RAD`` (one turn each way
+  covers every orientation); xyz form, revolute without limits.
+* Mimic: URDF ``q = multiplier * q_source + offset`` (m / rad) is ``"coupled": {source: c, "offset": o}`` in
+  the model's joint units; a mimic of a mimic joint is resolved to the joint at the end of the chain.
+* MD-H form: nearly parallel consecutive axes (within ``PARALLEL_SIN``) are folded in Hayati's form (``beta``).
+* Gravity is -z of the URDF base link (9.81 m/s^2), in the MD-H base frame (MD-H form) or the base link
+  (xyz form).
+* Masses: the body moved by a row is its child link plus every link fixed to it that is not a row's child
+  link itself (through ``fixed`` joints, side branches included: a tilt sensor, a drill tip); its mass is the
+  sum and its centre of mass is written in the row's frame (the MD-H joint frame, or the child link frame in
+  the xyz form). Links behind a movable joint that is not taken in are not counted. Inertia tensors are not
+  kept (the model has none).
+* What the rows cannot say about the URDF goes into the model's ``"urdf"`` object (an extension; the
+  contract's parsers ignore it): the URDF base and target link names, which joints were ``continuous`` and
+  their effort / velocity limits; MD-H form: the pose of the MD-H base frame in the URDF base link
+  (``base_xyz``, ``base_rpy``) and the orientation of the target link in the last MD-H frame (``tool_rpy``),
+  both in model units; xyz form: ``links``, each row's child link name. :func:`to_urdf` uses it, so URDF ->
+  model -> URDF keeps the link names and the base and target link frames, not only the points.
+* Export of a calibrated model: the identified MD-H constants of each row (and the identified target points)
+  are moved into the URDF joint origins, in the original link frames and about the original axes
+  (:func:`general_rows`); coupled rows get ``<mimic>``; effects a URDF cannot hold (and a coupling on several
+  joints, the identified base poses) are listed in comments.
 
-Not yet: mimic joints on the chain (a clear error names the joint; the contract's ``coupled`` joints will
-take them), several targets / trees, ``floating`` and ``planar`` joints on the chain.
+Not supported: ``floating`` and ``planar`` joints among the rows taken in (a clear error names the joint).
 
 Security: the text is refused when it carries a DOCTYPE (so no entity declarations, no entity expansion,
 no external entities), the way defusedxml does.
@@ -129,6 +145,8 @@ class _Joint:
     velocity: float | None
     mimic: str | None
     where: str
+    multiplier: float = 1.0
+    offset: float = 0.0
 
 
 def _where(kind: str, name) -> str:
@@ -252,8 +270,16 @@ def _parse_joints(root: ET.Element):
             effort = _one(errors, lim, "effort", f"{where}/limit")
             velocity = _one(errors, lim, "velocity", f"{where}/limit")
         mimic = el.find("mimic")
+        mult = off = None
+        if mimic is not None:
+            if not mimic.get("joint"):
+                errors.append({"field": f"{where}/mimic/@joint", "value": None,
+                               "message": "a <mimic> needs joint=... (the joint it follows)"})
+            mult = _one(errors, mimic, "multiplier", f"{where}/mimic") if mimic.get("multiplier") else 1.0
+            off = _one(errors, mimic, "offset", f"{where}/mimic") if mimic.get("offset") else 0.0
         joints[name] = _Joint(name, jtype, ends.get("parent"), ends.get("child"), xyz, rpy, axis, lower, upper,
-                              effort, velocity, None if mimic is None else (mimic.get("joint") or "?"), where)
+                              effort, velocity, None if mimic is None else (mimic.get("joint") or "?"), where,
+                              1.0 if mult is None else mult, 0.0 if off is None else off)
     if errors:
         raise UrdfError(errors)
     by_child: dict[str, _Joint] = {}
@@ -269,47 +295,84 @@ def _parse_joints(root: ET.Element):
     return links, joints, by_child
 
 
-def _path(links, joints, by_child, base, target) -> list[_Joint]:
-    children: dict[str, list[_Joint]] = {}
+def _children(joints: dict[str, _Joint]) -> dict[str, list[_Joint]]:
+    """Each link's child joints, in document order."""
+    out: dict[str, list[_Joint]] = {}
     for j in joints.values():
-        children.setdefault(j.parent, []).append(j)
+        out.setdefault(j.parent, []).append(j)
+    return out
+
+
+def _base_link(links, by_child, base) -> str:
     if base is None:
         roots = [ln for ln in links if ln not in by_child]
         if len(roots) != 1:
             raise UrdfError([{"field": "link", "value": roots, "message":
                               f"the URDF has {len(roots)} root links ({', '.join(roots) or 'none: a cycle'}); "
                               "name the chain's base link"}])
-        base = roots[0]
-    elif base not in links:
+        return roots[0]
+    if base not in links:
         raise UrdfError([{"field": "base", "value": base, "message": f"no link {base!r} in the URDF"}])
-    if target is None:
-        leaves, stack, seen = [], [base], set()
-        while stack:
-            ln = stack.pop()
-            if ln in seen:
-                continue
-            seen.add(ln)
-            kids = children.get(ln, [])
-            if not kids and ln != base:
-                leaves.append(ln)
-            stack.extend(j.child for j in kids)
-        if len(leaves) != 1:
-            raise UrdfError([{"field": "target", "value": sorted(leaves), "message":
-                              f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(sorted(leaves))}); "
-                              "name the target link (the measured point's link)"}])
-        target = leaves[0]
-    elif target not in links:
-        raise UrdfError([{"field": "target", "value": target, "message": f"no link {target!r} in the URDF"}])
-    path, ln = [], target
+    return base
+
+
+def _default_target(children, base) -> str:
+    leaves, stack, seen = [], [base], set()
+    while stack:
+        ln = stack.pop()
+        if ln in seen:
+            continue
+        seen.add(ln)
+        kids = children.get(ln, [])
+        if not kids and ln != base:
+            leaves.append(ln)
+        stack.extend(j.child for j in kids)
+    if len(leaves) != 1:
+        raise UrdfError([{"field": "target", "value": sorted(leaves), "message":
+                          f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(sorted(leaves))}); "
+                          "name the target link (the measured point's link)"}])
+    return leaves[0]
+
+
+def _chain(links, joints, by_child, base, link, field: str = "target", why: str = "") -> list[_Joint]:
+    """The joints from the base link down to `link`, base first."""
+    if link not in links:
+        raise UrdfError([{"field": field, "value": link, "message": f"no link {link!r} in the URDF{why}"}])
+    path, ln = [], link
     while ln != base:
         j = by_child.get(ln)
         if j is None or len(path) > len(joints):
-            raise UrdfError([{"field": "target", "value": target, "message":
-                              f"link {target!r} is not below the base link {base!r} (the chain must go from the base "
-                              "down to the target)"}])
+            raise UrdfError([{"field": field, "value": link, "message":
+                              f"link {link!r} is not below the base link {base!r} (the chain must go from the base "
+                              f"down to the target){why}"}])
         path.append(j)
         ln = j.parent
-    return base, target, path[::-1], children
+    return path[::-1]
+
+
+def _path(links, joints, by_child, base, target):
+    children = _children(joints)
+    base = _base_link(links, by_child, base)
+    if target is None:
+        target = _default_target(children, base)
+    return base, target, _chain(links, joints, by_child, base, target), children
+
+
+def _target_names(target) -> list[str | None]:
+    """`target` as a list: None (the default leaf), one link, 'a,b' or a sequence of links."""
+    if target is None:
+        return [None]
+    if isinstance(target, str):
+        names = [t.strip() for t in target.split(",")] if "," in target else [target]
+    else:
+        names = [str(t).strip() for t in target]
+    names = [t for t in names if t]
+    if not names:
+        return [None]
+    dup = sorted({t for t in names if names.count(t) > 1})
+    if dup:
+        raise UrdfError([{"field": "target", "value": dup, "message": "a target link is named more than once"}])
+    return names
 
 
 def _link_mass(el: ET.Element, name: str, scale: float, errors: list):
@@ -336,17 +399,40 @@ def _link_mass(el: ET.Element, name: str, scale: float, errors: list):
     return m, xyz * scale
 
 
-def parse_urdf(text: str | bytes, base: str | None = None, target: str | None = None, *,
-               length_unit: str = "m", angle_unit: str = "rad", name: str | None = None) -> dict:
-    """Contract model JSON (MD-H, ``length_unit`` / ``angle_unit``) of the URDF chain from `base` (default: the
-    root link) to `target` (default: the only leaf below the base). Raises :class:`UrdfError` (a ValueError)
-    naming the element, attribute and value of every problem found."""
+def parse_urdf(text: str | bytes, base: str | None = None, target=None, *,
+               length_unit: str = "m", angle_unit: str = "rad", name: str | None = None, form: str = "auto") -> dict:
+    """Contract model JSON (``length_unit`` / ``angle_unit``) of the URDF joints from `base` (default: the root
+    link) to the `target` links (one link, ``"a,b"`` or a list; default: the only leaf below the base).
+
+    `form`: ``"mdh"`` folds one serial chain into MD-H rows, ``"xyz"`` writes one xyz/rpy/axis row per URDF
+    joint (trees, fixed rows, coupled rows), ``"auto"`` (default) the MD-H form for one target whose chain has
+    no mimic joint, else the xyz form. Raises :class:`UrdfError` (a ValueError) naming the element, attribute
+    and value of every problem found."""
     if length_unit not in LENGTH_TO_MM or angle_unit not in ANGLE_TO_RAD:
         raise ValueError("length_unit must be 'm' or 'mm' and angle_unit 'rad' or 'deg'")
+    if form not in ("auto", "mdh", "xyz"):
+        raise ValueError("form must be 'auto', 'mdh' or 'xyz'")
     scale = 1000.0 / LENGTH_TO_MM[length_unit]  # URDF m -> model length unit
-    ang = math.degrees if angle_unit == "deg" else float
     root = _read(text)
     links, joints, by_child = _parse_joints(root)
+    targets = _target_names(target)
+    if form == "auto":
+        form = "xyz" if len(targets) > 1 else "mdh"
+        if form == "mdh":
+            _, _, path, _ = _path(links, joints, by_child, base, targets[0])
+            if any(j.mimic is not None for j in path):
+                form = "xyz"
+    if form == "xyz":
+        return _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit, angle_unit, name)
+    if len(targets) > 1:
+        raise UrdfError([{"field": "target", "value": targets, "message":
+                          "the MD-H form takes one target link (one serial chain); the xyz form takes several"}])
+    return _parse_mdh(root, links, joints, by_child, base, targets[0], scale, length_unit, angle_unit, name)
+
+
+def _parse_mdh(root, links, joints, by_child, base, target, scale, length_unit, angle_unit, name) -> dict:
+    """The MD-H form: one serial chain folded into MD-H rows."""
+    ang = math.degrees if angle_unit == "deg" else float
     base, target, path, children = _path(links, joints, by_child, base, target)
 
     errors: list[dict] = []
@@ -366,8 +452,8 @@ def parse_urdf(text: str | bytes, base: str | None = None, target: str | None = 
             continue
         if j.mimic is not None:
             errors.append({"field": f"{j.where}/mimic", "value": j.mimic, "message":
-                           f"joint {j.name!r} mimics {j.mimic!r}: mimic (coupled) joints are not yet supported by the "
-                           "URDF import; choose a chain without it (?base=LINK below it)"})
+                           f"joint {j.name!r} mimics {j.mimic!r}: a mimic (coupled) joint needs the xyz form "
+                           "(form 'xyz' or 'auto'), the MD-H form folds one chain of independent joints"})
             continue
         if j.type == "continuous":
             lim = (-CONTINUOUS_LIMIT_RAD, CONTINUOUS_LIMIT_RAD)
@@ -461,6 +547,173 @@ def parse_urdf(text: str | bytes, base: str | None = None, target: str | None = 
     return doc
 
 
+def _wrap(a: float) -> float:
+    """An angle in (-pi, pi] (the same rotation: each URDF angle enters only through cos and sin)."""
+    return math.remainder(float(a), 2.0 * math.pi) + 0.0
+
+
+def _mimic_source(joints: dict[str, _Joint], j: _Joint, errors: list):
+    """(source joint, multiplier, offset) of a mimic joint in URDF units, a mimic of a mimic resolved to the
+    joint at the end of the chain; None (with an error) when the chain is broken."""
+    mult, off, seen, cur = 1.0, 0.0, {j.name}, j
+    while cur.mimic is not None:
+        src = joints.get(cur.mimic)
+        mult, off = mult * cur.multiplier, off + mult * cur.offset
+        if src is None:
+            errors.append({"field": f"{cur.where}/mimic/@joint", "value": cur.mimic,
+                           "message": "no <joint> of that name"})
+            return None
+        if src.type not in MOVABLE:
+            errors.append({"field": f"{cur.where}/mimic/@joint", "value": cur.mimic,
+                           "message": f"joint {src.name!r} is {src.type}: a mimic joint follows a revolute, "
+                                      "continuous or prismatic joint"})
+            return None
+        if src.name in seen:
+            errors.append({"field": f"{j.where}/mimic/@joint", "value": j.mimic,
+                           "message": f"the mimic joints {', '.join(sorted(seen))} follow each other in a circle"})
+            return None
+        seen.add(src.name)
+        cur = src
+    return cur, mult, off
+
+
+def _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit, angle_unit, name) -> dict:
+    """The xyz form: one xyz/rpy/axis row per URDF joint on the way from the base to the targets (and to the
+    joints their mimic joints follow), fixed rows, coupled rows, one target per target link."""
+    an = ANGLE_TO_RAD[angle_unit]
+    children = _children(joints)
+    base = _base_link(links, by_child, base)
+    if targets == [None]:
+        targets = [_default_target(children, base)]
+    if base in targets:
+        raise UrdfError([{"field": "target", "value": base, "message": "a target link must be below the base "
+                          "link, not the base link itself"}])
+    need: set[str] = set()
+    for t in targets:
+        need.update(j.name for j in _chain(links, joints, by_child, base, t))
+    errors: list[dict] = []
+    mimic: dict[str, tuple] = {}  # row -> (source joint, multiplier, offset), URDF units
+    todo = sorted(need)
+    while todo:
+        j = joints[todo.pop()]
+        if j.mimic is None or j.name in mimic:
+            continue
+        src = _mimic_source(joints, j, errors)
+        if src is None:
+            continue
+        mimic[j.name] = src
+        if src[0].name not in need:
+            try:
+                extra = _chain(links, joints, by_child, base, src[0].child, f"{j.where}/mimic/@joint",
+                               f" (joint {j.name!r} mimics {src[0].name!r}, whose child link it is)")
+            except UrdfError as exc:
+                errors.extend(exc.errors)
+                continue
+            new = [k.name for k in extra if k.name not in need]
+            need.update(new)
+            todo.extend(new)
+    if errors:
+        raise UrdfError(errors)
+
+    # rows: the joints taken in, parents before children (depth first from the base, document order)
+    order: list[_Joint] = []
+    stack = [base]
+    while stack:
+        ln = stack.pop()
+        if ln != base:
+            order.append(by_child[ln])
+        stack.extend(j.child for j in reversed(children.get(ln, [])) if j.name in need)
+    row_of_link = {j.child: j.name for j in order}
+    scale_of = {}  # URDF -> model joint units
+    for j in order:
+        scale_of[j.name] = scale if j.type == "prismatic" else 1.0 / an
+    rows: list[dict] = []
+    continuous, extra_limits = [], {}
+    prev = None
+    for j in order:
+        if j.type in ("floating", "planar"):
+            errors.append({"field": f"{j.where}/@type", "value": j.type, "message":
+                           f"a {j.type} joint on the way {base} -> {', '.join(targets)} is not supported "
+                           "(revolute, continuous, prismatic, fixed and mimic joints are)"})
+            continue
+        row: dict[str, Any] = {"name": j.name, "type": "fixed" if j.type == "fixed" else
+                               "prismatic" if j.type == "prismatic" else "revolute"}
+        par = "base" if j.parent == base else row_of_link[j.parent]
+        if par != (prev if prev is not None else "base"):
+            row["parent"] = par
+        prev = j.name
+        row["xyz"] = [float(v * scale) + 0.0 for v in j.xyz]
+        row["rpy"] = [_wrap(v) / an + 0.0 for v in j.rpy]
+        if j.type != "fixed":
+            row["axis"] = [float(v) + 0.0 for v in j.axis]
+        if j.name in mimic:
+            src, mult, off = mimic[j.name]
+            f_row, f_src = scale_of[j.name], (scale if src.type == "prismatic" else 1.0 / an)
+            row["coupled"] = {src.name: float(mult * f_row / f_src)}
+            if off:
+                row["coupled"]["offset"] = float(off * f_row)
+        if j.type == "continuous":
+            continuous.append(j.name)
+        elif j.type in ("revolute", "prismatic"):
+            if j.lower is None or j.upper is None:
+                if j.name not in mimic:
+                    errors.append({"field": f"{j.where}/limit", "value": None, "message":
+                                   f"a {j.type} joint needs <limit lower=... upper=...> (use type continuous for an "
+                                   "unlimited revolute joint)"})
+            elif not j.lower < j.upper:
+                errors.append({"field": f"{j.where}/limit", "value": [j.lower, j.upper],
+                               "message": "the lower limit must be below the upper limit"})
+            else:
+                row["limits"] = [float(j.lower * scale_of[j.name]), float(j.upper * scale_of[j.name])]
+        if j.type != "fixed":
+            info = {k: v for k, v in (("effort", j.effort), ("velocity", j.velocity)) if v is not None}
+            if info:
+                extra_limits[j.name] = info
+        rows.append(row)
+    if errors:
+        raise UrdfError(errors)
+    if all(r["type"] == "fixed" or "coupled" in r for r in rows):
+        raise UrdfError([{"field": "joint", "value": [j.name for j in order], "message":
+                          f"the way {base} -> {', '.join(targets)} has no revolute, continuous or prismatic joint"}])
+
+    # masses: each row's child link and every link fixed to it that is no row's child link, in the child link
+    any_inertial = False
+    for j, row in zip(order, rows):
+        m_tot, moment = 0.0, np.zeros(3)
+        stack = [(j.child, np.eye(4))]
+        while stack:
+            ln, T = stack.pop()
+            mc = _link_mass(links[ln], ln, scale, errors)
+            if mc is not None:
+                any_inertial = True
+                m_tot += mc[0]
+                moment += mc[0] * (T @ np.r_[mc[1], 1.0])[:3]
+            for k in children.get(ln, []):
+                if k.type == "fixed" and k.name not in need and k.xyz is not None and k.rpy is not None:
+                    stack.append((k.child, T @ origin_matrix(k.xyz * scale, k.rpy)))
+        row["mass"] = float(m_tot)
+        row["com"] = [float(v) + 0.0 for v in (moment / m_tot if m_tot > 0 else np.zeros(3))]
+    if errors:
+        raise UrdfError(errors)
+    if not any_inertial:
+        for row in rows:
+            del row["mass"], row["com"]
+    doc = {"name": name or root.get("name") or "robot", "convention": "mdh",
+           "units": {"length": length_unit, "angle": angle_unit}, "joints": rows,
+           "targets": [{"name": t, "parent": by_child[t].name, "xyz": [0.0, 0.0, 0.0]} for t in targets],
+           "gravity": list(GRAVITY)}
+    doc[EXTENSION] = {
+        "robot": root.get("name"), "base_link": base, "target_link": ",".join(targets), "target_links": targets,
+        "form": "xyz", "links": {j.name: j.child for j in order}, "continuous": continuous, "limits": extra_limits,
+    }
+    try:
+        parse_model(doc)
+    except ModelError as exc:
+        raise UrdfError([{**e, "field": f"{_model_field_to_urdf(e['field'], doc)} (model {e['field']})"}
+                         for e in exc.errors]) from None
+    return doc
+
+
 def _model_field_to_urdf(field: str, doc: dict) -> str:
     m = re.match(r"joints\[(\d+)\]", field)
     if m and int(m.group(1)) < len(doc["joints"]):
@@ -470,28 +723,93 @@ def _model_field_to_urdf(field: str, doc: dict) -> str:
 
 # --- writing -------------------------------------------------------------------------
 
+def general_rows(model: RobotModel, geometry: np.ndarray | None = None, tools: np.ndarray | None = None):
+    """Each row of a model as a URDF joint at the given (e.g. identified) geometry and target points (default:
+    the model's own): (origins (n, 4, 4) mm, each in its parent row's link frame (the base frame for a row on
+    the base), axes (n, 3) unit vectors in the row's link frame, targets (T, 3) mm and centres of mass (n, 3) mm
+    or None, each in its row's link frame).
+
+    A row's link frame is the frame its xyz/rpy/axis describe (the URDF child link frame of a model imported
+    from URDF): its joint frame (z along the axis) turned back by the row's axis alignment; rows given as MD-H
+    have none (link frame = joint frame, axis z). The identified MD-H constants of a row (a, alpha, d, theta,
+    beta, acting in its joint frame) end up in its own origin and, for beta, in its children's origins and its
+    targets, so the joints move about the same lines as in the calibrated model."""
+    n = model.n_joints
+    g = model.geometry if geometry is None else np.asarray(geometry, float).reshape(n, 5)
+    tl = model.target_points if tools is None else np.asarray(tools, float).reshape(-1, 3)
+    A = np.broadcast_to(np.eye(3), (n, 3, 3)) if model.align is None else model.align
+    H = np.zeros((n, 4, 4))
+    H[:, :3, :3], H[:, 3, 3] = A, 1.0
+    par = model.parents
+    # row j's full frame is F_par @ pre_j @ Rx(alpha) Tx(a) Rz(theta + q) Tz(d) Ry(beta) (calib_core.kinematics);
+    # its link frame is that frame before Ry(beta), turned back by the axis alignment: L_j = F_j Ry(-beta) H_j^T
+    origins = np.empty((n, 4, 4))
+    for j in range(n):
+        a, alpha, d, theta, beta = g[j]
+        pre = np.eye(4) if model.pre is None else model.pre[j]
+        before = H[par[j]] @ rot_y(g[par[j], 4]) if par[j] >= 0 else np.eye(4)
+        origins[j] = before @ pre @ mdh_transform(a, alpha, d, theta) @ H[j].T
+    back = lambda j, v: A[j] @ (rot_y(g[j, 4])[:3, :3] @ v)  # noqa: E731  F_j coordinates -> L_j coordinates
+    targets = np.array([back(r, t) for r, t in zip(model.target_rows, tl)])
+    coms = None if model.com is None else np.array([back(j, c) for j, c in enumerate(model.com)])
+    return origins, A[:, :, 2].copy(), targets, coms
+
+
+def model_dict(model: RobotModel, geometry: np.ndarray | None = None, tools: np.ndarray | None = None) -> dict:
+    """:meth:`RobotModel.to_dict` at the given geometry and target points, with a model given as xyz/rpy/axis
+    rows written in its own link frames and axes (:func:`general_rows`), not in its joint frames."""
+    doc = model.to_dict(geometry, tools)
+    if model.pre is None:
+        return doc
+    origins, axes, targets, coms = general_rows(model, geometry, tools)
+    ls, an = LENGTH_TO_MM[model.length_unit], ANGLE_TO_RAD[model.angle_unit]
+    for j, row in enumerate(doc["joints"]):
+        row["xyz"] = [float(v / ls) + 0.0 for v in origins[j, :3, 3]]
+        row["rpy"] = [float(v / an) + 0.0 for v in matrix_rpy(origins[j])]
+        if model.is_fixed[j]:
+            row.pop("axis", None)
+        else:
+            row["axis"] = [float(v) + 0.0 for v in axes[j]]
+        if coms is not None:
+            row["com"] = [float(v / ls) + 0.0 for v in coms[j]]
+    for t, v in zip(doc["targets"], targets):
+        t["xyz"] = [float(c / ls) + 0.0 for c in v]
+    return doc
+
+
 def calibrated_model_dict(model: RobotModel, state: dict, source: dict | None = None) -> dict:
-    """The calibrated model as contract JSON: the model with the identified geometry and tool point, the URDF
-    extension of the source model document (if any) kept, and a ``"calibration"`` object listing the
-    identified effects (which the model rows cannot hold) and the identified base pose (model units, in the
-    measurement frame). `state`: a CalibratedRobot state (``to_state()``) or the robot itself."""
+    """The calibrated model as contract JSON: the model with the identified geometry and target points (rows
+    written the way the model was given: MD-H, or xyz/rpy/axis in its own link frames), the URDF extension of
+    the source model document (if any) kept, and a ``"calibration"`` object listing the identified effects
+    (which the model rows cannot hold) and the identified base pose (model units, in the measurement frame; one
+    per setup in ``base_poses`` when there are several). `state`: a CalibratedRobot state (``to_state()``) or
+    the robot itself."""
     if not isinstance(state, dict):
         state = state.to_state()
+    from .kinematics import base_rotation, layout
+
     n = model.n_joints
     x = np.asarray(state["x"], float)
-    doc = model.to_dict(x[: 5 * n].reshape(n, 5), x[5 * n + 6: 5 * n + 9])
+    lay = layout(model, x)
+    doc = model_dict(model, x[lay.geometry].reshape(n, 5), x[lay.tools].reshape(-1, 3))
     if source and isinstance(source.get(EXTENSION), dict):
         doc[EXTENSION] = source[EXTENSION]
-    from .kinematics import base_rotation
-
     ls = LENGTH_TO_MM[model.length_unit]
-    Rb = base_rotation(x[5 * n: 5 * n + 6], np.asarray(state.get("R0", np.eye(3)), float))
+    R0 = np.asarray(state.get("R0", np.eye(3)), float)
+    R0s = np.broadcast_to(R0, (lay.n_setups, 3, 3)) if R0.ndim == 2 else R0
+    frame = ("the robot's base frame (the MD-H base, or the base link of xyz/rpy rows) in the measurement frame")
+    poses = []
+    for k in range(lay.n_setups):
+        b = x[lay.base(k)]
+        poses.append({"position": [float(v / ls) for v in b[:3]],
+                      "rotation_matrix": base_rotation(b, R0s[k]).tolist(), "frame": frame})
     doc["calibration"] = {
-        "base_pose": {"position": [float(v / ls) for v in x[5 * n: 5 * n + 3]], "rotation_matrix": Rb.tolist(),
-                      "frame": "the robot's MD-H base frame in the measurement frame"},
+        "base_pose": poses[0],
         "effects": [{"kind": e.get("kind"), "joints": [_joint_name(model, j) for j in e.get("joints", [])]}
                     for e in state.get("effects", [])],
     }
+    if len(poses) > 1:
+        doc["calibration"]["base_poses"] = poses
     return doc
 
 
@@ -513,140 +831,251 @@ def _comment(text: str) -> str:
     return "<!-- " + text.replace("--", "- -").rstrip("-") + " -->"
 
 
-def to_urdf(model, name: str | None = None) -> str:
-    """A URDF of a model: a contract model dict (any convention and units; its ``"urdf"`` extension and
-    ``"calibration"`` object are used when present), a :class:`RobotModel`, or a calibrated robot (an object
-    with ``model`` and ``x``, e.g. :class:`calib_core.identify.CalibratedRobot`).
+class _Writer:
+    """The lines of a URDF being written, with unique link and joint names."""
 
-    Each MD-H row becomes a joint whose origin is ``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` with axis ``0 0 1``
-    (revolute or prismatic); a row with ``beta`` adds a fixed joint ``<joint>_beta`` (``Ry(beta)``), and the
-    tool point a fixed joint to the target link. The links between are the MD-H joint frames
-    (``<joint>_link``), carrying the model's masses and centres of mass as inertials (no inertia tensor: the
-    model has none). Effects a URDF cannot hold are listed in a comment."""
-    ext: dict = {}
-    calib: dict | None = None
-    if isinstance(model, dict):
-        ext = model.get(EXTENSION) if isinstance(model.get(EXTENSION), dict) else {}
-        calib = model.get("calibration") if isinstance(model.get("calibration"), dict) else None
-        m = parse_model(model)
-        geometry, tool = m.geometry, m.tool
-    elif isinstance(model, RobotModel):
-        m, geometry, tool = model, model.geometry, model.tool
-    elif hasattr(model, "model") and hasattr(model, "x"):
-        m = model.model
-        n = m.n_joints
-        geometry, tool = np.asarray(model.x[: 5 * n]).reshape(n, 5), np.asarray(model.x[5 * n + 6: 5 * n + 9])
-        calib = {"effects": [{"kind": e.kind, "joints": list(e.joints)} for e in getattr(model, "effects", ())]}
-    else:
-        raise TypeError("to_urdf takes a model dict, a RobotModel or a calibrated robot")
-    au = ANGLE_TO_RAD[m.angle_unit]
-    ls = LENGTH_TO_MM[m.length_unit]
-    rname = name or ext.get("robot") or m.name
-    base_link = str(ext.get("base_link") or "base_link")
-    target_link = str(ext.get("target_link") or "tool")
-    continuous = set(ext.get("continuous") or ())
-    extra = ext.get("limits") if isinstance(ext.get("limits"), dict) else {}
+    def __init__(self, robot: str, reserved_joints=()):
+        self.lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(str(robot))}>"]
+        self.links: set[str] = set()
+        self.joints: set[str] = set(reserved_joints)
 
-    used: set[str] = set()
-
-    def uniq(s: str) -> str:
+    @staticmethod
+    def _uniq(s: str, used: set) -> str:
         out, k = s, 2
         while out in used:
             out, k = f"{s}_{k}", k + 1
         used.add(out)
         return out
 
-    used.add(base_link)
-    lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(str(rname))}>",
-             _comment(f"written by calib from the contract model {m.name!r}: each MD-H row "
-                      "(Rx(alpha) Tx(a) Rz(theta) Tz(d) Ry(beta)) is a joint origin with axis 0 0 1; the links "
-                      "between are the MD-H joint frames; lengths m, angles rad")]
+    def link_name(self, s: str) -> str:
+        return self._uniq(s, self.links)
+
+    def joint_name(self, s: str) -> str:
+        return self._uniq(s, self.joints)
+
+    def comment(self, text: str) -> None:
+        self.lines.append(_comment(text))
+
+    def link(self, name_: str, mass=None, com=None) -> None:
+        """A link; `com` in m."""
+        if mass is None:
+            self.lines.append(f"  <link name={quoteattr(name_)}/>")
+            return
+        self.lines.extend([f"  <link name={quoteattr(name_)}>", "    <inertial>",
+                           f'      <origin xyz="{_vec(com)}" rpy="0 0 0"/>', f'      <mass value="{_f(mass)}"/>',
+                           '      <inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/>', "    </inertial>",
+                           "  </link>"])
+
+    def joint(self, name_: str, jtype: str, parent: str, child: str, T: np.ndarray, *tags: str | None,
+              axis=(0.0, 0.0, 1.0)) -> None:
+        """A joint; `T` the origin with its translation in mm."""
+        self.lines.append(f"  <joint name={quoteattr(name_)} type={quoteattr(jtype)}>")
+        self.lines.append(f"    <parent link={quoteattr(parent)}/>")
+        self.lines.append(f"    <child link={quoteattr(child)}/>")
+        self.lines.append(f'    <origin xyz="{_vec(T[:3, 3] / 1000.0)}" rpy="{_vec(matrix_rpy(T))}"/>')
+        if jtype != "fixed":
+            self.lines.append(f'    <axis xyz="{_vec(axis)}"/>')
+        self.lines.extend(f"    {t}" for t in tags if t)
+        self.lines.append("  </joint>")
+
+    def text(self) -> str:
+        return "\n".join(self.lines + ["</robot>"]) + "\n"
+
+
+def _calibration_comments(w: _Writer, m: RobotModel, calib: dict | None) -> None:
     effects = (calib or {}).get("effects") or []
     if effects:
-        lines.append(_comment("identified effects this URDF cannot hold (the calibration's predict and compensate "
-                              "include them): " + "; ".join(
-                                  f"{e.get('kind')}" + (f" on {', '.join(map(str, e.get('joints') or []))}"
-                                                        if e.get("joints") else "") for e in effects)))
-    bp = (calib or {}).get("base_pose")
-    if bp:
-        lines.append(_comment(f"identified base pose in the measurement frame ({m.length_unit}): position "
-                              f"{_vec(bp['position'])}, rotation matrix rows {bp['rotation_matrix']}"))
+        w.comment("identified effects this URDF cannot hold (the calibration's predict and compensate "
+                  "include them): " + "; ".join(
+                      f"{e.get('kind')}" + (f" on {', '.join(map(str, e.get('joints') or []))}"
+                                            if e.get("joints") else "") for e in effects))
+    poses = (calib or {}).get("base_poses") or ([calib["base_pose"]] if (calib or {}).get("base_pose") else [])
+    for k, bp in enumerate(poses):
+        which = f" of setup {k + 1}" if len(poses) > 1 else ""
+        w.comment(f"identified base pose{which} in the measurement frame ({m.length_unit}): position "
+                  f"{_vec(bp['position'])}, rotation matrix rows {bp['rotation_matrix']}")
+    if not np.allclose(m.gravity, GRAVITY, rtol=0.0, atol=1e-12):
+        w.comment(f"gravity in the base link (m/s^2): {_vec(m.gravity)} (a URDF has no gravity)")
 
-    def link(name_: str, mass=None, com=None):
-        if mass is None:
-            lines.append(f"  <link name={quoteattr(name_)}/>")
-            return
-        lines.extend([f"  <link name={quoteattr(name_)}>", "    <inertial>",
-                      f'      <origin xyz="{_vec(com)}" rpy="0 0 0"/>', f'      <mass value="{_f(mass)}"/>',
-                      '      <inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/>', "    </inertial>",
-                      "  </link>"])
 
-    def joint(name_: str, jtype: str, parent: str, child: str, T: np.ndarray, limit: str | None = None):
-        lines.append(f"  <joint name={quoteattr(name_)} type={quoteattr(jtype)}>")
-        lines.append(f"    <parent link={quoteattr(parent)}/>")
-        lines.append(f"    <child link={quoteattr(child)}/>")
-        lines.append(f'    <origin xyz="{_vec(T[:3, 3] / 1000.0)}" rpy="{_vec(matrix_rpy(T))}"/>')
-        if jtype != "fixed":
-            lines.append('    <axis xyz="0 0 1"/>')
-        if limit:
-            lines.append(f"    {limit}")
-        lines.append("  </joint>")
+def _limit_tag(m: RobotModel, j: int, info: dict, continuous: bool) -> tuple[str, str | None]:
+    """(URDF joint type, <limit> tag) of a movable row."""
+    lo, hi = (float(v) for v in m.limits[j])
+    eff = f' effort="{_f(info.get("effort", 0.0))}" velocity="{_f(info.get("velocity", 0.0))}"'
+    if m.prismatic[j]:
+        if not (math.isfinite(lo) and math.isfinite(hi)):  # a coupled prismatic row may have none
+            lo, hi = -MAX_LENGTH_MM, MAX_LENGTH_MM
+        return "prismatic", f'<limit lower="{_f(lo / 1000.0)}" upper="{_f(hi / 1000.0)}"{eff}/>'
+    if continuous or not (math.isfinite(lo) and math.isfinite(hi)):
+        return "continuous", (f"<limit{eff}/>" if info else None)
+    return "revolute", f'<limit lower="{_f(lo)}" upper="{_f(hi)}"{eff}/>'
 
-    link(base_link)
+
+def _inputs(model):
+    """(RobotModel, geometry, target points (T, 3) mm, URDF extension, calibration object) of what to_urdf takes."""
+    ext: dict = {}
+    calib: dict | None = None
+    if isinstance(model, dict):
+        ext = model.get(EXTENSION) if isinstance(model.get(EXTENSION), dict) else {}
+        calib = model.get("calibration") if isinstance(model.get("calibration"), dict) else None
+        m = parse_model(model)
+        return m, m.geometry, m.target_points, ext, calib
+    if isinstance(model, RobotModel):
+        return model, model.geometry, model.target_points, ext, calib
+    if hasattr(model, "model") and hasattr(model, "x"):
+        from .kinematics import layout
+
+        m = model.model
+        x = np.asarray(model.x, float)
+        lay = layout(m, x)
+        calib = {"effects": [{"kind": e.kind, "joints": [_joint_name(m, j) for j in e.joints]}
+                             for e in getattr(model, "effects", ())]}
+        return m, x[lay.geometry].reshape(m.n_joints, 5), x[lay.tools].reshape(-1, 3), ext, calib
+    raise TypeError("to_urdf takes a model dict, a RobotModel or a calibrated robot")
+
+
+def to_urdf(model, name: str | None = None) -> str:
+    """A URDF of a model: a contract model dict (any convention and units; its ``"urdf"`` extension and
+    ``"calibration"`` object are used when present), a :class:`RobotModel`, or a calibrated robot (an object
+    with ``model`` and ``x``, e.g. :class:`calib_core.identify.CalibratedRobot`).
+
+    A serial chain of MD-H rows: each row becomes a joint whose origin is ``Rx(alpha) Tx(a) Rz(theta) Tz(d)``
+    with axis ``0 0 1``; a row with ``beta`` adds a fixed joint ``<joint>_beta`` (``Ry(beta)``), and the tool
+    point a fixed joint to the target link. The links between are the MD-H joint frames (``<joint>_link``).
+
+    Any other model (xyz/rpy/axis rows, trees, fixed or coupled rows, several targets): one joint per row
+    (fixed rows as ``fixed`` joints, coupled rows with ``<mimic>``) whose origin and axis are the row's at the
+    model's geometry (:func:`general_rows`), between the rows' link frames (named as in the ``urdf`` extension,
+    else ``<joint>_link``); each target is a link at its point (the row's own link when the target is at its
+    origin, or folded into a fixed row's origin).
+
+    Links carry the model's masses and centres of mass as inertials (no inertia tensor: the model has none).
+    Effects a URDF cannot hold are listed in a comment."""
+    m, geometry, tools, ext, calib = _inputs(model)
+    rname = name or ext.get("robot") or m.name
+    if m.pre is None and m.fixed is None and not m.coupling and m.is_serial:
+        return _mdh_urdf(m, geometry, tools[0], ext, calib, rname)
+    return _general_urdf(m, geometry, tools, ext, calib, rname)
+
+
+def _general_urdf(m: RobotModel, geometry, tools, ext: dict, calib: dict | None, rname: str) -> str:
+    n = m.n_joints
+    origins, axes, tpts, coms = general_rows(m, geometry, tools)
+    origins, coms = origins.copy(), None if coms is None else coms.copy()
+    base_link = str(ext.get("base_link") or "base_link")
+    ext_links = ext.get("links") if isinstance(ext.get("links"), dict) else {}
+    continuous = set(ext.get("continuous") or ())
+    extra = ext.get("limits") if isinstance(ext.get("limits"), dict) else {}
+    par = m.parents
+    rows_with_kids = set(int(p) for p in par if p >= 0)
+    tnames, trows = m.target_names, [int(r) for r in m.target_rows]
+    want = [str(ext_links.get(jn) or f"{jn}_link") for jn in m.joint_names]
+
+    # each target: the row's own link (at its origin), folded into a fixed row's origin, or a link of its own
+    own: list[int] = []
+    for k, (t, r) in enumerate(zip(tnames, trows)):
+        v = tpts[k]
+        if want[r] != t:
+            own.append(k)
+        elif np.abs(v).max() <= 1e-9:
+            pass
+        elif m.is_fixed[r] and r not in rows_with_kids and trows.count(r) == 1:
+            origins[r] = origins[r] @ origin_matrix(v, (0.0, 0.0, 0.0))
+            if coms is not None:
+                coms[r] = coms[r] - v
+        else:
+            own.append(k)
+            want[r] = f"{t}_parent"
+    w = _Writer(rname, m.joint_names)
+    w.comment(f"written by calib from the contract model {m.name!r}: one joint per model row (fixed rows fixed, "
+              "coupled rows with mimic), its origin the row's geometry in the link frame of the row it follows, "
+              "its axis the row's; each target is a link at its point; lengths m, angles rad")
+    _calibration_comments(w, m, calib)
+    w.links.add(base_link)
+    target_link = {k: w.link_name(tnames[k]) for k in own}  # target names first: rows give way
+    link_of = [w.link_name(s) for s in want]
+    js = np.where(m.prismatic, 1000.0, 1.0)  # internal -> URDF joint units
+    couple = {row: (terms, off) for row, terms, off in m.coupling}
+    w.link(base_link)
+    for j, jn in enumerate(m.joint_names):
+        mimic = None
+        if j in couple:
+            terms, off = couple[j]
+            if len(terms) == 1:
+                src, c = terms[0]
+                mimic = (f"<mimic joint={quoteattr(m.joint_names[src])} multiplier=\"{_f(c * js[src] / js[j])}\" "
+                         f"offset=\"{_f(off / js[j])}\"/>")
+            else:
+                w.comment(f"joint {jn} = " + " + ".join(f"{c * js[s] / js[j]:.12g} * {m.joint_names[s]}"
+                                                         for s, c in terms)
+                          + f" + {off / js[j]:.12g} (m, rad): a URDF mimic follows one joint, so it is written "
+                            "as an independent joint")
+        w.link(link_of[j], m.mass[j] if m.mass is not None else None,
+               coms[j] / 1000.0 if coms is not None else None)
+        parent = base_link if par[j] < 0 else link_of[par[j]]
+        if m.is_fixed[j]:
+            w.joint(jn, "fixed", parent, link_of[j], origins[j])
+            continue
+        info = extra.get(jn) if isinstance(extra.get(jn), dict) else {}
+        jtype, limit = _limit_tag(m, j, info, jn in continuous)
+        w.joint(jn, jtype, parent, link_of[j], origins[j], limit, mimic, axis=axes[j])
+    for k in own:
+        r = trows[k]
+        w.link(target_link[k])
+        w.joint(w.joint_name(f"{target_link[k]}_target"), "fixed", link_of[r], target_link[k],
+                origin_matrix(tpts[k], (0.0, 0.0, 0.0)))
+    return w.text()
+
+
+def _mdh_urdf(m: RobotModel, geometry, tool, ext: dict, calib: dict | None, rname: str) -> str:
+    au = ANGLE_TO_RAD[m.angle_unit]
+    ls = LENGTH_TO_MM[m.length_unit]
+    base_link = str(ext.get("base_link") or "base_link")
+    target_link = str(ext.get("target_link") or "tool")
+    continuous = set(ext.get("continuous") or ())
+    extra = ext.get("limits") if isinstance(ext.get("limits"), dict) else {}
+
+    w = _Writer(rname, m.joint_names)
+    w.comment(f"written by calib from the contract model {m.name!r}: each MD-H row "
+              "(Rx(alpha) Tx(a) Rz(theta) Tz(d) Ry(beta)) is a joint origin with axis 0 0 1; the links "
+              "between are the MD-H joint frames; lengths m, angles rad")
+    _calibration_comments(w, m, calib)
+    w.links.add(base_link)
+    w.link(base_link)
     parent = base_link
     bxyz, brpy = ext.get("base_xyz"), ext.get("base_rpy")
     if bxyz is not None and brpy is not None and (any(bxyz) or any(brpy)):
         B = origin_matrix(np.asarray(bxyz, float) * ls, np.asarray(brpy, float) * au)
-        child = uniq("mdh_base")
-        link(child)
-        jb = f"{base_link}_to_mdh_base"
-        while jb in m.joint_names:
-            jb += "_"
-        joint(jb, "fixed", parent, child, B)
+        child = w.link_name("mdh_base")
+        w.link(child)
+        w.joint(w.joint_name(f"{base_link}_to_mdh_base"), "fixed", parent, child, B)
         parent = child
-    joint_names: set[str] = set()
+    has_mass = m.mass is not None
     for j, jn in enumerate(m.joint_names):
         a, alpha, d, theta, beta = (float(v) for v in geometry[j])
         T = mdh_transform(a, alpha, d, theta)  # Ry(beta) follows as a fixed joint of its own
-        lo, hi = (float(v) for v in m.limits[j])
         info = extra.get(jn) if isinstance(extra.get(jn), dict) else {}
-        eff = f' effort="{_f(info.get("effort", 0.0))}" velocity="{_f(info.get("velocity", 0.0))}"'
-        if m.prismatic[j]:
-            jtype, limit = "prismatic", f'<limit lower="{_f(lo / 1000.0)}" upper="{_f(hi / 1000.0)}"{eff}/>'
-        elif jn in continuous or not (math.isfinite(lo) and math.isfinite(hi)):
-            jtype, limit = "continuous", (f"<limit{eff}/>" if info else None)
-        else:
-            jtype, limit = "revolute", f'<limit lower="{_f(lo)}" upper="{_f(hi)}"{eff}/>'
-        has_mass = m.mass is not None
-        child = uniq(f"{jn}_link")
+        jtype, limit = _limit_tag(m, j, info, jn in continuous)
+        child = w.link_name(f"{jn}_link")
         if beta != 0.0:
-            link(child)
+            w.link(child)
         else:
-            link(child, m.mass[j] if has_mass else None, m.com[j] / 1000.0 if has_mass else None)
-        joint(jn, jtype, parent, child, T, limit)
-        joint_names.add(jn)
+            w.link(child, m.mass[j] if has_mass else None, m.com[j] / 1000.0 if has_mass else None)
+        w.joint(jn, jtype, parent, child, T, limit)
         parent = child
         if beta != 0.0:
-            child = uniq(f"{jn}_frame")
-            link(child, m.mass[j] if has_mass else None, m.com[j] / 1000.0 if has_mass else None)
-            jb = f"{jn}_beta"
-            while jb in joint_names or jb in m.joint_names:
-                jb += "_"
-            joint_names.add(jb)
-            joint(jb, "fixed", parent, child, rot_y(beta))
+            child = w.link_name(f"{jn}_frame")
+            w.link(child, m.mass[j] if has_mass else None, m.com[j] / 1000.0 if has_mass else None)
+            w.joint(w.joint_name(f"{jn}_beta"), "fixed", parent, child, rot_y(beta))
             parent = child
     trpy = ext.get("tool_rpy")
     Tt = rpy_matrix(*(np.asarray(trpy, float) * au)) if trpy is not None else np.eye(4)
     Tt[:3, 3] = tool
-    tlink = uniq(target_link) if target_link not in used else uniq(f"{target_link}_tool")
-    link(tlink)
-    jt = f"{tlink}_fixed"
-    while jt in joint_names or jt in m.joint_names:
-        jt += "_"
-    joint(jt, "fixed", parent, tlink, Tt)
-    lines.append("</robot>")
-    return "\n".join(lines) + "\n"
+    tlink = w.link_name(target_link) if target_link not in w.links else w.link_name(f"{target_link}_tool")
+    w.link(tlink)
+    w.joint(w.joint_name(f"{tlink}_fixed"), "fixed", parent, tlink, Tt)
+    return w.text()
 
 
-__all__ = ["CONTINUOUS_LIMIT_RAD", "UrdfError", "align_z", "calibrated_model_dict", "matrix_rpy", "origin_matrix",
-           "parse_urdf", "rpy_matrix", "to_urdf"]
+__all__ = ["CONTINUOUS_LIMIT_RAD", "UrdfError", "align_z", "calibrated_model_dict", "general_rows", "matrix_rpy",
+           "model_dict", "origin_matrix", "parse_urdf", "rpy_matrix", "to_urdf"]

@@ -7,9 +7,8 @@ import numpy as np
 
 from ..io import Measurements
 from ..kinematics import Chain, nominal_vector
-from ..statics import joint_loads
 from ..model import RobotModel
-from .base import Basis, Context, Effect, apply
+from .base import Basis, Context, Effect, apply, has_loads, loads
 from .cartesian_effects import AxisStraightness, LinkDeflection, ThermalDrift
 from .gravity import LateralCompliance, LoadCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale
@@ -32,18 +31,21 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
     notes: list[str] = []
     n = model.n_joints
     moving = [j for j in range(n) if np.ptp(meas.joints[:, j]) > 1e-3]  # rad or mm: a joint that moves
-    if model.has_mass:
+    if has_loads(model, meas):
         # a joint's load can vary even where the joint stands still; a vertical axis carries none
-        load = joint_loads(Chain(model, nominal_vector(model, n_setups=meas.n_setups), meas.joints, None, meas.labels),
-                           meas.payload_kg())
+        load = loads(Chain(model, nominal_vector(model, n_setups=meas.n_setups), meas.joints, None, meas.labels), meas)
         span = np.ptp(load, axis=0)
-        loaded = [j for j in range(n) if span[j] > 1e-6 * max(span.max(), 1e-300)]
+        loaded = [j for j in range(n) if span[j] > 1e-6 * max(span.max(), 1e-300) and model.moving[j]]
         out += [JointCompliance((j,)) for j in loaded]
         if len(loaded) > 1:
             out.append(JointCompliance(tuple(loaded)))
         big = np.abs(load).max(axis=0)
         out += [Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * big[j])) for j in loaded]
-        out += [LinkDeflection((k,)) for k in range(1, n)]
+        if model.has_mass:
+            out += [LinkDeflection((k,)) for k in range(1, n)]
+        else:
+            notes.append("the model has no masses: link_deflection needs mass data and is not tested (the "
+                         "measured torques drive the joint causes)")
     else:
         notes.append("the model has no masses: gravity loads are identified from the data (joint_compliance, "
                      "backlash); link_deflection needs mass data and is not tested")

@@ -28,8 +28,26 @@ class Context:
 
     @cached_property
     def loads(self) -> np.ndarray:
-        """Gravity + payload load on every joint, (N, n), N*m or N."""
-        return joint_loads(self.chain, self.meas.payload_kg())
+        """Load on every joint, (N, n), N*m or N: the measured torques where the CSV has tau_<joint>, else the
+        gravity + payload load of the model's statics."""
+        return loads(self.chain, self.meas)
+
+
+def has_loads(model: RobotModel, meas: Measurements) -> bool:
+    """Load-driven causes can be tested: the model has masses or the data carry measured joint torques."""
+    return model.has_mass or meas.tau is not None
+
+
+def loads(chain: Chain, meas: Measurements) -> np.ndarray:
+    """(N, n) N*m or N.  A measured joint torque tau (tau_<joint>, what the joint applies to hold the arm) is the
+    gravity load's opposite, so the load is -tau; joints without a measured torque take the model's statics
+    (zero when the model has no masses)."""
+    model = chain.model
+    out = joint_loads(chain, meas.payload_kg()) if model.has_mass else np.zeros((chain.N, model.n_joints))
+    if meas.tau is not None:
+        given = ~np.isnan(meas.tau)
+        out = np.where(given, -np.nan_to_num(meas.tau), out)
+    return out
 
 
 @dataclass(frozen=True)

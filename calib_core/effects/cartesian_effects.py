@@ -39,9 +39,10 @@ class LinkDeflection(Effect):
         u = (end - start) / np.maximum(L, 1e-9)[:, None]
         g = np.broadcast_to(gravity_world(ch), u.shape)
         # every body beyond the link and the payload, each acting at its station along the beam
-        pts = np.concatenate([com_world(ch)[k:], ch.p[None]], axis=0)  # (b, N, 3) mm
-        mass = np.concatenate([np.broadcast_to(m.mass[k:, None], (m.n_joints - k, len(L))),
-                               ctx.meas.payload_kg()[None]], axis=0)  # (b, N) kg
+        carried = m.descendants(k)
+        pts = np.concatenate([com_world(ch)[carried], ch.p[None]], axis=0)  # (b, N, 3) mm
+        mass = np.concatenate([np.broadcast_to(m.mass[carried, None], (len(carried), len(L))),
+                               (ctx.meas.payload_kg() * ch.on_path[k])[None]], axis=0)  # (b, N) kg
         F = mass[..., None] * g  # N
         station = np.clip(((pts - start) * u).sum(-1), 0.0, L)  # (b, N) mm
         Mo = _cross(pts - (start + station[..., None] * u), F)  # N*mm, the moment of the load's offset
@@ -52,9 +53,11 @@ class LinkDeflection(Effect):
         turn = (_cross(u, Fp) * s**2 / 2 + Mp * s).sum(0)
         lever = ch.p - end
         carried = defl + _cross(turn, lever)
-        W = perp((m.mass[k - 1] if k > 0 else 0.0) * g)  # the segment's own body, spread evenly
+        par = m.parents[k]
+        W = perp((m.mass[par] if par >= 0 else 0.0) * g)  # the segment's own body, spread evenly
         own = W * L1**3 / 8 + _cross(_cross(u, W) * L1**2 / 6, lever)
-        return Basis(None, np.stack([carried, own], axis=2), np.linalg.norm(carried + own, axis=1),
+        on = ch.on_path[k][:, None]  # a link off the way to the pose's target moves what it carries, not the target
+        return Basis(None, np.stack([carried * on, own * on], axis=2), np.linalg.norm(carried + own, axis=1),
                      f"bending of the link ending at {m.joint_names[k]} per unit 1/(EI) (mm*N*mm^2)")
 
     def explain(self, model):
@@ -102,7 +105,8 @@ class AxisStraightness(Effect):
             swing = _cross(Rj[:, :, a], lever)
             P = _legendre(s, degrees)
             cols += [swing * P[:, [k]] for k in range(len(degrees))]
-        return Basis(None, np.stack(cols, axis=2), ctx.meas.joints[:, j], f"{ctx.model.joint_names[j]} travel (mm)")
+        return Basis(None, np.stack(cols, axis=2) * ch.on_path[j][:, None, None], ctx.meas.joints[:, j],
+                     f"{ctx.model.joint_names[j]} travel (mm)")
 
     def explain(self, model):
         return (f"the linear axis {model.joint_names[self.joints[0]]} is not straight: its carriage wanders "
@@ -156,10 +160,10 @@ class ThermalDrift(Effect):
     def growth(chain) -> np.ndarray:
         """(N, 3) mm the tool point moves when every link length (a, d offsets, tool) grows by 1 (strain):
         the structure expands, the joint travels and the base placement do not."""
-        n = chain.model.n_joints
+        n, lay = chain.model.n_joints, chain.layout
         J = chain.jacobian()
         x = chain.x
-        lengths = np.r_[np.arange(0, 5 * n, 5), np.arange(2, 5 * n, 5), 5 * n + 6 + np.arange(3)]
+        lengths = np.r_[np.arange(0, 5 * n, 5), np.arange(2, 5 * n, 5), np.arange(lay.tools.start, lay.tools.stop)]
         return J[:, :, lengths] @ x[lengths]
 
     def explain(self, model):

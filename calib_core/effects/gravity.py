@@ -32,17 +32,17 @@ MAX_LATERAL_TERMS = 3
 
 def gravity_regressor(chain, j: int, axis: np.ndarray | None = None) -> np.ndarray:
     """Y_j (N, m): the gravity load on joint j per unit mass (column 4k) and first moment (4k+1..3) of
-    every body k >= j; N*m per kg and per kg*mm (revolute), N per kg (prismatic). With `axis` (N, 3), the
+    every body k that joint j carries (k >= j in a serial chain); N*m per kg and per kg*mm (revolute), N per kg (prismatic). With `axis` (N, 3), the
     moment about that axis through the joint instead (a bending moment, for lateral compliance)."""
     g = gravity_world(chain)
-    n = chain.model.n_joints
+    carried = chain.model.descendants(j)
     z, o = (chain.z_axis[j] if axis is None else axis), chain.o_theta[j]
     if chain.model.prismatic[j] and axis is None:
-        col = z @ g
-        return np.repeat(col[:, None], n - j, axis=1)
+        col = (z * g).sum(-1)
+        return np.repeat(col[:, None], len(carried), axis=1)
     cols = []
     gz = _cross(np.broadcast_to(g, z.shape), z)  # g x axis, (N, 3)
-    for k in range(j, n):
+    for k in carried:
         cols.append((z * _cross(chain.o_beta[k] - o, np.broadcast_to(g, o.shape))).sum(1)[:, None] / 1000.0)
         cols.append(np.einsum("nab,na->nb", chain.R[k], gz) / 1000.0)
     return np.concatenate(cols, axis=1)
@@ -54,12 +54,14 @@ def lateral_axes(chain, j: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def payload_load(chain, payload_kg: np.ndarray, j: int) -> np.ndarray:
-    """Gravity load (N,) of the known payload at the measured point on joint j (N*m or N)."""
+    """Gravity load (N,) of the known payload at the measured point on joint j (N*m or N); 0 where j does not
+    carry the pose's target."""
     g = gravity_world(chain)
     z = chain.z_axis[j]
+    load = payload_kg * chain.on_path[j]
     if chain.model.prismatic[j]:
-        return payload_kg * (z @ g)
-    return payload_kg * (z * _cross(chain.p - chain.o_theta[j], np.broadcast_to(g, z.shape))).sum(1) / 1000.0
+        return load * (z * g).sum(-1)
+    return load * (z * _cross(chain.p - chain.o_theta[j], np.broadcast_to(g, z.shape))).sum(1) / 1000.0
 
 
 def _as_matrix(t) -> np.ndarray:
@@ -187,7 +189,7 @@ class LateralCompliance(Effect):
         N = len(ch.p)
         cols = []
         for j, mixes in zip(self.joints, self.load_mix):
-            lever = ch.p - ch.o_beta[j]
+            lever = (ch.p - ch.o_beta[j]) * ch.on_path[j][:, None]  # a branch off the target's way moves nothing
             for axis, mix in zip(lateral_axes(ch, j), mixes):
                 if not mix:
                     continue

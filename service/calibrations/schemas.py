@@ -4,13 +4,17 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from ..limits import MAX_PREDICT_ROWS
+
 Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
 """A JSON number, finite; strict: the string "1" is not a number."""
-MAX_POSES = 100_000
+MAX_POSES = MAX_PREDICT_ROWS  # enforced before parsing by limits.BatchLimitMiddleware (413); here for the OpenAPI
 MAX_ROW = 256
 """At most this many values in one row of joints (a robot has a handful of joints)."""
 Row = Annotated[list[Finite], Field(max_length=MAX_ROW)]
 PerPose = Annotated[list[Finite], Field(max_length=MAX_POSES)]
+Label = Annotated[str, Field(max_length=200)]
+"""A target or setup name of the model / the measurement set."""
 
 
 class PlotRef(BaseModel):
@@ -55,7 +59,13 @@ class PredictIn(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}]})
     joints: list[Row] = Field(min_length=1, max_length=MAX_POSES,
-                                       description="N poses x n joints, model units, model joint order")
+                                       description="N poses x n joints, model units, in the order of the model's "
+                                                   "actuated joints (coupled and fixed rows follow the model)")
+    target: Label | list[Label] | None = Field(None, max_length=MAX_POSES,
+                                               description="which of the model's targets each pose places (one name "
+                                                           "or one per pose; default the first target)")
+    setup: Label | None = Field(None, description="the setup (tracker station) whose measurement frame the "
+                                                  "answer is in (default the first setup of the calibration)")
     payload: Finite | PerPose | None = Field(None, description="kg at the tool (0 to 10000), one value or one "
                                              "per pose; used only by calibrations that identified load effects")
     temperature: Finite | PerPose | None = Field(None,
@@ -88,13 +98,19 @@ class CompensateIn(BaseModel):
     locked_joints: list[str] = Field(default_factory=list, max_length=MAX_ROW, description="joint names held at the seed (for a "
                                      "redundant robot, e.g. the telescopic J6 of the spray robot)")
     payload: Finite | None = Field(None, description="kg at the tool during the program (0 to 10000)")
+    target: Label | list[Label] | None = Field(None, max_length=MAX_POSES,
+                                               description="which of the model's targets each row places (one name "
+                                                           "or one per row; default the first target)")
+    setup: Label | None = Field(None, description="the setup whose measurement frame the targets are in "
+                                                  "(default the first setup of the calibration)")
 
 
 class CompensateOut(BaseModel):
     model_config = ConfigDict(json_schema_extra={"example": {
         "joints": [[2000.1, 10.02, -19.97, 30.01, -40.0, 2000.0, 15.01]], "residual_mm": [0.0004],
         "reachable": [True], "reason": [None], "unit": {"length": "mm", "angle": "deg"}}})
-    joints: list[list[float]] = Field(description="joint commands, model units and joint order")
+    joints: list[list[float]] = Field(description="commands of the actuated joints, model units and their order "
+                                                  "(coupled joints follow the model and are not listed)")
     residual_mm: list[float | None] = Field(description="the calibrated model's remaining distance to each target")
     reachable: list[bool]
     reason: list[str | None] = Field(description="why a target could not be reached (None where it was)")

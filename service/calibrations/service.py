@@ -98,24 +98,26 @@ def _joint_range_problems(model, rows, field: str, errors: list) -> int:
     """Joint values far outside the limits (JOINT_MARGIN_FRACTION of the range beyond them; revolute joints
     without limits: MAX_REVOLUTE_DEG) as errors naming field[i][j] and the accepted range (at most MAX_ERRORS
     listed); returns how many more there are than listed."""
-    n = model.n_joints
+    act = model.actuated
+    n = len(act)
     if not rows or any(len(r) != n for r in rows):
         return 0
     q = np.asarray(rows, float)
-    js = model.joint_scale()
-    lo, hi = model.limits[:, 0] / js, model.limits[:, 1] / js
+    js = model.joint_scale()[act]
+    lo, hi = model.limits[act, 0] / js, model.limits[act, 1] / js
+    prismatic, names = model.prismatic[act], model.actuated_names
     rev = MAX_REVOLUTE_DEG * ANGLE_TO_RAD["deg"] / ANGLE_TO_RAD[model.angle_unit]
     span = hi - lo
     margin = JOINT_MARGIN_FRACTION * np.where(np.isfinite(span), span, 0.0)
-    a_lo = np.where(model.prismatic, lo - margin, np.maximum(lo - margin, -rev))
-    a_hi = np.where(model.prismatic, hi + margin, np.minimum(hi + margin, rev))
+    a_lo = np.where(prismatic, lo - margin, np.maximum(lo - margin, -rev))
+    a_hi = np.where(prismatic, hi + margin, np.minimum(hi + margin, rev))
     bad = (q < a_lo) | (q > a_hi)
     count = int(bad.sum())
     for i, j in np.argwhere(bad)[:MAX_ERRORS]:
         errors.append({"field": f"body.{field}[{i}][{j}]", "value": float(q[i, j]),
-                       "message": f"{model.joint_names[j]} = {q[i, j]:g} {model.joint_unit(j)} is far outside its "
+                       "message": f"{names[j]} = {q[i, j]:g} {model.joint_unit(act[j])} is far outside its "
                                   f"limits [{lo[j]:g}, {hi[j]:g}]; accepted: {a_lo[j]:g} to {a_hi[j]:g} "
-                                  f"{model.joint_unit(j)} (the limits widened by "
+                                  f"{model.joint_unit(act[j])} (the limits widened by "
                                   f"{JOINT_MARGIN_FRACTION:.0%} of the range)"})
     return max(0, count - MAX_ERRORS)
 
@@ -182,12 +184,35 @@ def _epoch(stamps, errors: list):
     return out if isinstance(stamps, list) else (out[0] if out else None)
 
 
+def _labels(model, state: dict, target, setup, n_rows: int, errors: list) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Per row: the model target index (None: the first) and the calibration's setup index (None: the first)."""
+    tix = six = None
+    if target is not None:
+        names = [target] * n_rows if isinstance(target, str) else list(target)
+        if len(names) != n_rows:
+            errors.append({"field": "body.target", "value": len(names), "message": "one target name per row, or one"})
+        bad = [(i, t) for i, t in enumerate(names) if t not in model.target_names]
+        errors += [{"field": f"body.target[{i}]" if not isinstance(target, str) else "body.target", "value": t,
+                    "message": f"unknown target: one of {', '.join(model.target_names)}"} for i, t in bad[:MAX_ERRORS]]
+        if not bad and len(names) == n_rows:
+            tix = np.array([model.target_names.index(t) for t in names])
+    if setup is not None:
+        setups = list(state.get("setup_names", [""]))
+        if setup not in setups:
+            errors.append({"field": "body.setup", "value": setup, "message": "unknown setup: one of "
+                           + (", ".join(setups) if setups != [""] else "none (the calibration has one setup)")})
+        else:
+            six = np.full(n_rows, setups.index(setup))
+    return tix, six
+
+
 def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temperature=None,
-            timestamp=None) -> tuple[list[list[float]], str]:
+            timestamp=None, target=None, setup=None) -> tuple[list[list[float]], str]:
     model = model_of(s.get(Robot, c.robot_id))
-    n = model.n_joints
+    n = len(model.actuated)
     errors = [{"field": f"body.joints[{i}]", "value": len(row), "message": f"expected {n} joint values "
-               f"({', '.join(model.joint_names)})"} for i, row in enumerate(joints) if len(row) != n]
+               f"({', '.join(model.actuated_names)})"} for i, row in enumerate(joints) if len(row) != n]
+    tix, six = _labels(model, c.robot_state, target, setup, len(joints), errors)
     if isinstance(payload, list) and len(payload) != len(joints):
         errors.append({"field": "body.payload", "value": len(payload), "message": "one payload per pose, or one number"})
     temp = _per_pose("temperature", temperature, len(joints), errors)
@@ -196,18 +221,19 @@ def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temp
     more += _range_problems("payload", payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
     more += _range_problems("temperature", temperature, *TEMPERATURE_RANGE_C, "deg C", errors)
     _reject("the joints do not fit the robot model", errors, more)
-    q = np.asarray(joints, float) * model.joint_scale()
+    q = model.expand_joints(np.asarray(joints, float) * model.joint_scale()[model.actuated])
     robot = CalibratedRobot.from_state(model, c.robot_state)
     load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (len(q),)).copy()
     p_mm = robot.predict(q, Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load, temperature=temp,
-                                         timestamp=stamps))
+                                         timestamp=stamps, target=tix, setup=six,
+                                         setup_names=robot.setup_names))
     return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit
 
 
 def compensate(s: Session, c: Calibration, body) -> dict:
     """Joint commands for targets (or for a joints-only program) with the calibrated model and its effects."""
     model = model_of(s.get(Robot, c.robot_id))
-    n = model.n_joints
+    n, names = len(model.actuated), model.actuated_names
     errors = []
     program = body.program_joints is not None
     if program == (body.targets is not None):
@@ -217,7 +243,7 @@ def compensate(s: Session, c: Calibration, body) -> dict:
     if not program and body.targets is not None and rows is None:
         errors.append({"field": "body.seed_joints", "value": None, "message": "seed_joints are required with targets"})
     errors += [{"field": f"body.{'program_joints' if program else 'seed_joints'}[{i}]", "value": len(r),
-                "message": f"expected {n} joint values ({', '.join(model.joint_names)})"}
+                "message": f"expected {n} joint values ({', '.join(names)})"}
                for i, r in enumerate(rows or []) if len(r) != n]
     if not program and body.targets is not None:
         errors += [{"field": f"body.targets[{i}]", "value": len(t), "message": "expected x, y, z"}
@@ -225,17 +251,20 @@ def compensate(s: Session, c: Calibration, body) -> dict:
         if rows is not None and len(rows) != len(body.targets):
             errors.append({"field": "body.seed_joints", "value": len(rows),
                            "message": f"one seed per target ({len(body.targets)})"})
-    errors += [{"field": "body.locked_joints", "value": j, "message": f"unknown joint; the model has "
-                f"{', '.join(model.joint_names)}"} for j in body.locked_joints if j not in model.joint_names]
+    errors += [{"field": "body.locked_joints", "value": j, "message": (
+                "follows its coupling (or is fixed) and cannot be locked" if j in model.joint_names else "unknown joint")
+                + f"; the actuated joints are {', '.join(names)}"} for j in body.locked_joints if j not in names]
+    tix, six = _labels(model, c.robot_state, body.target, body.setup, len(rows or []), errors)
     more = _joint_range_problems(model, rows, "program_joints" if program else "seed_joints", errors)
     if not program:
         more += _point_problems(body.targets, model.length_unit, errors)
     more += _range_problems("payload", body.payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
     _reject("the request does not fit the robot model", errors, more)
-    q = np.asarray(rows, float).reshape(-1, n) * model.joint_scale()
+    q = np.asarray(rows, float).reshape(-1, n) * model.joint_scale()[model.actuated]
     robot = CalibratedRobot.from_state(model, c.robot_state)
-    columns = Measurements(joints=q, points=np.zeros((len(q), 3)),
-                           payload=None if body.payload is None else np.full(len(q), body.payload))
+    columns = Measurements(joints=model.expand_joints(q), points=np.zeros((len(q), 3)),
+                           payload=None if body.payload is None else np.full(len(q), body.payload),
+                           target=tix, setup=six, setup_names=robot.setup_names)
     locked = tuple(body.locked_joints)
     if program:
         result = nominal_to_calibrated(robot, None, q, locked=locked, columns=columns)
