@@ -17,6 +17,7 @@ class Instrument:
     sigma0_mm: float  # per-axis 1-sigma at the instrument
     per_m_mm: float  # growth per metre of distance (angular noise)
     basis: str  # where the figures come from
+    sigma_rad: float = 1.7e-4  # per-axis 1-sigma of a measured orientation (6-D rows), rad
 
     def sigma_mm(self, points_mm: np.ndarray) -> np.ndarray:
         """Per-pose 1-sigma (mm) per axis at points (N, 3) mm of the measurement frame."""
@@ -29,11 +30,15 @@ class Instrument:
 
 
 INSTRUMENTS: dict[str, Instrument] = {i.name: i for i in (
-    Instrument("laser_tracker", 0.015, 0.006, "a laser tracker's MPE, e.g. Leica AT960: 15 um + 6 um/m"),
-    Instrument("optical", 0.030, 0.020, "an optical CMM / photogrammetric tracker, e.g. Creaform C-Track"),
+    Instrument("laser_tracker", 0.015, 0.006, "a laser tracker's MPE, e.g. Leica AT960: 15 um + 6 um/m; "
+                                              "orientation with a T-Mac: 0.01 deg", 1.7e-4),
+    Instrument("optical", 0.030, 0.020, "an optical CMM / photogrammetric tracker, e.g. Creaform C-Track; "
+                                        "orientation 0.02 deg", 3.5e-4),
     Instrument("motion_capture", 0.200, 0.0, "a marker motion-capture system, e.g. Vicon (0.15 mm static "
-                                             "mean error, Merriaux et al. 2017, rounded up for a large volume)"),
-    Instrument("total_station", 0.500, 0.005, "a surveying total station: 0.6 mm + 1 ppm distance, 0.5-1\" angles"),
+                                             "mean error, Merriaux et al. 2017, rounded up for a large volume); "
+                                             "orientation of a rigid marker body 0.1 deg", 1.7e-3),
+    Instrument("total_station", 0.500, 0.005, "a surveying total station: 0.6 mm + 1 ppm distance, 0.5-1\" angles; "
+                                              "it measures no orientation", 1e-2),
 )}
 DEFAULT_INSTRUMENT = "laser_tracker"
 

@@ -3,7 +3,11 @@ from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
+
+from . import kinematics as K
 from .diagnose import diagnose
+from .orientation import LEVER_MM, MARK, with_orientation, without_virtual
 from .select import select_geometry
 from .io import Measurements
 from .model import RobotModel
@@ -23,6 +27,8 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
     if mode not in MODES:
         raise ValueError(f"unknown model {mode!r}; use one of {MODES}")
     report = progress or (lambda fraction, message: None)
+    given = model
+    model, meas = with_orientation(model, meas)
     if mode == "auto":
         d = diagnose(model, meas, progress=report)
         cal = d.calibration
@@ -35,5 +41,18 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
         out = cal.to_dict()
         out["model_selection"] = selection.to_dict()
     report(1.0, "done")
-    out["robot_state"] = cal.robot.to_state()
+    state = cal.robot.to_state()
+    if model is not given:  # 6-D rows: the virtual targets served the fit; the answer is about the robot's model
+        for key in ("x", "x_basis"):
+            if key in state:
+                state[key] = without_virtual(model, np.array(state[key])).tolist()
+        lay = K.layout(given, np.array(state["x"]))
+        x = np.array(state["x"])
+        out["calibrated_model"] = given.to_dict(x[lay.geometry].reshape(-1, 5), x[lay.tools].reshape(-1, 3))
+        n6 = sum(MARK in str(i) for i in meas.point_ids) // 3
+        out["orientation"] = {"rows": n6, "lever_mm": LEVER_MM,
+                              "note": f"{n6} rows carried an orientation; each entered the fit as three virtual "
+                                      f"points {LEVER_MM:g} mm from the target along its measured axes (poses and "
+                                      "metrics count them), weighted by the instrument's orientation noise"}
+    out["robot_state"] = state
     return out
