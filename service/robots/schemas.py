@@ -5,6 +5,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from calib_core.model import parse_model
 from calib_core.robots import spray7
 
 SPRAY7_EXAMPLE = spray7()
@@ -18,7 +19,7 @@ class RobotOut(BaseModel):
     model_config = ConfigDict(json_schema_extra={"example": {
         "id": "0b6f4f3e-4a0e-4a39-9d8e-2f6d5c3b1a90", "name": "spray7", "joint_names": [f"J{i}" for i in range(1, 8)],
         "n_joints": 7, "units": {"length": "mm", "angle": "deg"}, "created_at": "2026-11-03T08:00:19+00:00",
-        "model": SPRAY7_EXAMPLE}})
+        "model": SPRAY7_EXAMPLE, "actuated_joints": [f"J{i}" for i in range(1, 8)], "targets": ["tool"]}})
     id: str
     name: str
     joint_names: list[str]
@@ -26,9 +27,15 @@ class RobotOut(BaseModel):
     units: dict[str, Any] = Field(description="the model's length and angle units")
     created_at: str
     model: dict[str, Any] = Field(description="the robot model JSON exactly as posted (contract section 1)")
+    actuated_joints: list[str] = Field(description="the joints a measurement CSV and a predict / compensate "
+                                                   "request carry, in this order (coupled and fixed rows follow "
+                                                   "the model)")
+    targets: list[str] = Field(description="the measured targets (a CSV `target` column names one per row)")
 
     @classmethod
     def of(cls, r) -> "RobotOut":
         units = r.model_json.get("units") if isinstance(r.model_json.get("units"), dict) else {}
+        model = parse_model(r.model_json)
         return cls(id=r.id, name=r.name, joint_names=r.joint_names, n_joints=len(r.joint_names), units=units,
-                   created_at=iso(r.created_at), model=r.model_json)
+                   created_at=iso(r.created_at), model=r.model_json, actuated_joints=list(model.actuated_names),
+                   targets=list(model.target_names))
