@@ -745,7 +745,7 @@ def general_rows(model: RobotModel, geometry: np.ndarray | None = None, tools: n
     # its link frame is that frame before Ry(beta), turned back by the axis alignment: L_j = F_j Ry(-beta) H_j^T
     origins = np.empty((n, 4, 4))
     for j in range(n):
-        a, alpha, d, theta, beta = g[j]
+        a, alpha, d, theta, _ = g[j]  # beta acts after the joint: in the children's origins and the targets
         pre = np.eye(4) if model.pre is None else model.pre[j]
         before = H[par[j]] @ rot_y(g[par[j], 4]) if par[j] >= 0 else np.eye(4)
         origins[j] = before @ pre @ mdh_transform(a, alpha, d, theta) @ H[j].T
@@ -894,8 +894,6 @@ def _calibration_comments(w: _Writer, m: RobotModel, calib: dict | None) -> None
         which = f" of setup {k + 1}" if len(poses) > 1 else ""
         w.comment(f"identified base pose{which} in the measurement frame ({m.length_unit}): position "
                   f"{_vec(bp['position'])}, rotation matrix rows {bp['rotation_matrix']}")
-    if not np.allclose(m.gravity, GRAVITY, rtol=0.0, atol=1e-12):
-        w.comment(f"gravity in the base link (m/s^2): {_vec(m.gravity)} (a URDF has no gravity)")
 
 
 def _limit_tag(m: RobotModel, j: int, info: dict, continuous: bool) -> tuple[str, str | None]:
@@ -959,7 +957,6 @@ def to_urdf(model, name: str | None = None) -> str:
 
 
 def _general_urdf(m: RobotModel, geometry, tools, ext: dict, calib: dict | None, rname: str) -> str:
-    n = m.n_joints
     origins, axes, tpts, coms = general_rows(m, geometry, tools)
     origins, coms = origins.copy(), None if coms is None else coms.copy()
     base_link = str(ext.get("base_link") or "base_link")
@@ -991,6 +988,8 @@ def _general_urdf(m: RobotModel, geometry, tools, ext: dict, calib: dict | None,
               "coupled rows with mimic), its origin the row's geometry in the link frame of the row it follows, "
               "its axis the row's; each target is a link at its point; lengths m, angles rad")
     _calibration_comments(w, m, calib)
+    if not np.allclose(m.gravity, GRAVITY, rtol=0.0, atol=1e-12):
+        w.comment(f"gravity in the base link (m/s^2): {_vec(m.gravity)} (a URDF has no gravity)")
     w.links.add(base_link)
     target_link = {k: w.link_name(tnames[k]) for k in own}  # target names first: rows give way
     link_of = [w.link_name(s) for s in want]

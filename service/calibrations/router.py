@@ -47,8 +47,9 @@ def get_plot(calibration_id: str, name: str = Path(..., description="`errors`, `
 @router.get("/calibrations/{calibration_id}/model", responses=problem_responses(404),
             summary="The calibrated model as contract model JSON (contract section 5)")
 def get_calibrated_model(calibration_id: str, s: Session = Depends(get_read_session, scope="function")) -> dict:
-    """The robot's model with the identified geometry (MD-H rows) and tool point, in the model's units; a
-    `calibration` object lists the identified effects the rows cannot hold and the identified base pose.
+    """The robot's model with the identified geometry and target points, in the model's units (MD-H rows, or
+    xyz/rpy/axis rows in the model's own link frames when it was given so, e.g. imported from a URDF tree); a
+    `calibration` object lists the identified effects the rows cannot hold and the identified base pose(s).
     It can be posted to `POST /robots` as it is."""
     return service.calibrated_model(s, service.get_calibration(s, calibration_id))
 
@@ -59,8 +60,10 @@ def get_calibrated_model(calibration_id: str, s: Session = Depends(get_read_sess
                 **problem_responses(404)},
             summary="The calibrated model as URDF (contract section 5)")
 def get_calibrated_urdf(calibration_id: str, s: Session = Depends(get_read_session, scope="function")) -> Response:
-    """Each identified MD-H row is a joint origin (axis `0 0 1`); effects a URDF cannot hold are listed in a
-    comment. A model imported from a URDF keeps its base and target link names and frames."""
+    """Each model row is a joint whose origin carries the identified geometry (MD-H rows: axis `0 0 1`; xyz/rpy
+    rows: the row's own axis, fixed rows as fixed joints, coupled rows with `<mimic>`); each target is a link at
+    its identified point; effects a URDF cannot hold are listed in a comment. A model imported from a URDF keeps
+    its base, link and target names and frames."""
     text = service.calibrated_urdf(s, service.get_calibration(s, calibration_id))
     return Response(text, media_type="application/xml")
 
@@ -74,7 +77,8 @@ def predict(calibration_id: str, body: PredictIn = Body(..., openapi_examples={"
         s: Session = Depends(get_read_session, scope="function")) -> PredictOut:
     """Joints in the model's units and joint order; positions in the measurement (tracker) frame, model length unit."""
     c = service.get_calibration(s, calibration_id)
-    positions, unit = service.predict(s, c, body.joints, body.payload, body.temperature, body.timestamp)
+    positions, unit = service.predict(s, c, body.joints, body.payload, body.temperature, body.timestamp,
+                                      body.target, body.setup)
     return PredictOut(positions=positions, unit=unit)
 
 

@@ -34,15 +34,16 @@ async def _raw_body(request: Request) -> bytes:
 
 
 def create_robot_urdf(response: Response, body: bytes = Depends(_raw_body),
-                      base: str | None = Query(None, max_length=200, description="the chain's base link (default: "
-                                               "the URDF's root link)"),
-                      targets: str | None = Query(None, max_length=1000, description="the measured point's link "
-                                                  "(default: the only leaf link); one for now"),
+                      base: str | None = Query(None, max_length=200, description="the base link (default: the "
+                                               "URDF's root link)"),
+                      targets: str | None = Query(None, max_length=1000, description="the measured points' links, "
+                                                  "comma-separated (default: the only leaf link)"),
                       length_unit: str = Query("m", pattern="^(m|mm)$"),
                       angle_unit: str = Query("rad", pattern="^(rad|deg)$"),
                       s: Session = Depends(get_session, scope="function")) -> RobotOut:
-    """`Content-Type: application/xml`: the URDF chain from `base` to `targets` folded into MD-H rows and stored
-    as contract model JSON (with its `urdf` extension object), validated like a JSON upload."""
+    """`Content-Type: application/xml`: the URDF joints from `base` to `targets` as contract model JSON (with its
+    `urdf` extension object; calib_core.urdf: MD-H rows for one serial chain, xyz/rpy/axis rows for a tree or a
+    chain with mimic joints), stored and validated like a JSON upload."""
     r = service.create_robot_from_urdf(s, body, base, targets, length_unit, angle_unit)
     response.headers["Location"] = f"/robots/{r.id}"
     return RobotOut.of(r)
@@ -61,8 +62,9 @@ def create_robot(response: Response, doc: dict[str, Any] = Body(..., openapi_exa
         s: Session = Depends(get_session, scope="function")) -> RobotOut:
     """Validates the model (joint names, types, limits, units) and stores it exactly as posted.
     Every problem is listed in the 422 problem document as `{field, value, message}`.
-    With `Content-Type: application/xml` the body is a URDF instead (contract section 5; `?base=LINK&targets=LINK`,
-    optional `length_unit=m|mm`, `angle_unit=rad|deg`), stored as the model JSON it converts to."""
+    With `Content-Type: application/xml` the body is a URDF instead (contract section 5;
+    `?base=LINK&targets=LINK[,LINK]`, optional `length_unit=m|mm`, `angle_unit=rad|deg`), stored as the model
+    JSON it converts to."""
     r = service.create_robot(s, doc)
     response.headers["Location"] = f"/robots/{r.id}"
     return RobotOut.of(r)

@@ -51,14 +51,8 @@ def create_robot_from_urdf(s: Session, body: bytes, base: str | None, targets: s
     upload; a bad URDF is a 422 naming the element and attribute."""
     from calib_core.urdf import UrdfError, parse_urdf
 
-    names = [t.strip() for t in (targets or "").split(",") if t.strip()]
-    if len(names) > 1:
-        raise ProblemError(422, "several targets (a tree) are not yet supported by the URDF import; name one",
-                           kind="invalid-urdf", errors=[{"field": "targets", "value": targets,
-                                                         "message": "one target link for now"}])
     try:
-        doc = parse_urdf(body, base or None, names[0] if names else None, length_unit=length_unit,
-                         angle_unit=angle_unit)
+        doc = parse_urdf(body, base or None, targets or None, length_unit=length_unit, angle_unit=angle_unit)
     except UrdfError as exc:
         n = len(exc.errors)
         raise ProblemError(422, f"the URDF has {n} error{'s' * (n != 1)}; nothing was stored", kind="invalid-urdf",
