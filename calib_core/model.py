@@ -291,7 +291,7 @@ class RobotModel:
             if general:
                 row["xyz"] = [float(v / ls) for v in links[j][:3, 3]]
                 row["rpy"] = [float(v / an) for v in _rpy(links[j][:3, :3])]
-                row["axis"] = [0.0, 0.0, 1.0]
+                row["axis"] = [float(v) for v in (self.align[j][:, 2] if self.align is not None else (0, 0, 1))]
             else:
                 for k, p in enumerate(GEOMETRIC):
                     row[p] = float(g[j, k] / (an if p in ANGULAR else ls))
@@ -317,8 +317,9 @@ class RobotModel:
         return doc
 
     def _link_frames(self, g: np.ndarray, tools: np.ndarray):
-        """For xyz/rpy export at geometry g: each row's origin (4x4, mm) in its parent's link frame (the joint
-        frame before Ry(beta), z along the axis), the targets and centres of mass in their rows' link frames."""
+        """For xyz/rpy export at geometry g: each row's origin (4x4, mm) in its parent's link frame, the targets and
+        centres of mass in their rows' link frames. A row's link frame is the user's: its joint frame before
+        Ry(beta) turned back by `align`, so the axes and link orientations written are the ones given."""
         from .kinematics import Chain  # the kinematics builds on this module
 
         n = self.n_joints
@@ -327,7 +328,7 @@ class RobotModel:
         C = np.empty((n, 4, 4))
         for j in range(n):
             C[j] = np.eye(4)
-            C[j, :3, :3] = ch.R[j, 0] @ _rot_y(-g[j, 4])
+            C[j, :3, :3] = ch.R[j, 0] @ _rot_y(-g[j, 4]) @ (self.align[j].T if self.align is not None else np.eye(3))
             C[j, :3, 3] = ch.o_beta[j, 0]
         inv = np.linalg.inv(C)
         par = self.parents
