@@ -142,7 +142,8 @@ def test_no_cause_means_no_finding(seed):
         camp = world.campaign(n=150)
         d = diagnose(SPRAY, camp.meas)
         assert d.findings == [], (seed + k, _said(d), d.explanation)
-        assert d.calibration.unmodelled_mm == 0.0  # nothing left: the std is the parameters' alone
+        # nothing left: what the std adds is the noise of the held-out excess, a fraction of the floor
+        assert d.calibration.unmodelled_mm < 0.3 * d.noise_floor_mm, (d.calibration.unmodelled_mm, d.noise_floor_mm)
         assert "No cause was found" in d.explanation
         bad = {camp.meas.point_ids[i] for i in camp.truth.outliers}
         assert bad <= set(d.calibration.metrics()["outliers"]), (seed + k, bad, d.calibration.metrics()["outliers"])
