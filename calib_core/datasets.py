@@ -1,16 +1,30 @@
 """Readers that turn third-party *real* calibration datasets into our contract formats.
 
-The raw files live outside the repository (licences unclear, see each NOTES.md
-under ``SHARED_DATASETS``); nothing here copies them. Each reader returns a
-:class:`Dataset` holding
+The raw files live outside the repository (licences unclear or non-commercial, see each NOTES.md under
+``SHARED_DATASETS``); nothing here copies them. Each reader returns a :class:`Dataset` holding
 
-* ``model``: the robot model JSON dict of contract section 1 (standard DH,
-  ``"convention": "dh"``, millimetres and degrees), and
-* ``csv_text``: the measurement CSV of contract section 2 (joints in degrees,
-  ``x,y,z`` and ``sigma`` in millimetres, ``payload`` in kg).
+* ``model``: the robot model JSON dict of the contract (sections 1 and 5), and
+* ``csv_text``: the measurement CSV of the contract (sections 2 and 5), in the model's units,
 
-Both are exactly what a user would ``POST``, so they exercise the service on
-measured data instead of simulation. Only numpy, pyyaml and the stdlib are used.
+exactly what a user would ``POST`` (``calib convert-dataset NAME OUTDIR`` writes them), so they exercise the
+service on measured data instead of simulation. Only numpy, pyyaml and the stdlib are used.
+
+=====================  ==============================================================================
+reader                 what it writes
+=====================  ==============================================================================
+motoman_leica          Motoman MA1400 right arm, standard DH mm/deg, 586 Leica points, ``sigma``
+iiwa7_payload          KUKA iiwa 7, standard DH mm/deg with masses, 4 payload runs (``payload``); optional
+                       6-D rows (``qw,qx,qy,qz``) and measured torques (``tau_A1..tau_A7``)
+iiwa7_run              the iiwa's other runs (exp1, exp2, 20161118: every joint moves), 6-D rows + torques
+agile_justin_tree      DLR Agile Justin as ONE robot: torso with the coupled passive joint, two arms as
+                       branches (``parent``), mount frames as ``fixed`` xyz/rpy rows, two ``targets``
+hilti_trailblazer      Hilti lifting column + Doosan arm from its URDF (fixed, xyz/rpy/axis, mimic as
+                       ``coupled`` rows), 7 recordings as ``setup`` s, ``timestamp``, ``temperature``
+agile_justin           (older) torso + one arm folded into a serial MD-H chain, coupled joint as a column
+=====================  ==============================================================================
+
+Joint limits: where the robot really went beyond the published limits, a reader widens them to the data (padded)
+and says so in ``notes`` rather than have the default upload (``?limits=reject``) refuse rows.
 """
 from __future__ import annotations
 
@@ -160,14 +174,19 @@ def motoman_leica(root: Path | str = SHARED_DATASETS) -> Dataset:
                                                       {"sigma": (sigma_mm, "{:.6f}")}), notes)
 
 
-def _iiwa_model(folder: Path) -> dict:
-    """KUKA LBR iiwa 7 R800 nominal standard-DH model in mm/deg with link masses and COMs."""
+def _iiwa_model(folder: Path, q_deg: np.ndarray | None = None, widened: list[str] | None = None) -> dict:
+    """KUKA LBR iiwa 7 R800 nominal standard-DH model in mm/deg with link masses and COMs. With the data's
+    joints `q_deg`, a limit the data go beyond is widened to the data + 2 deg (listed in `widened`): the author's
+    model says +-170 deg for A7, which really turns +-175 deg (KUKA datasheet) and reaches 173 deg in exp1."""
     y = yaml.safe_load((folder / "iiwa7_nominal_dh.yaml").read_text())
     joints = []
-    for name, j, lim, m, com in zip(IIWA_JOINTS, y["joints"], y["joint_limits_rad"],
-                                    y["mass"], y["com"]):
-        row = _dh_joint(name, j["a"], j["d"], j["alpha"], j["offset"],
-                        [round(math.degrees(v), 6) for v in lim])
+    for k, (name, j, lim, m, com) in enumerate(zip(IIWA_JOINTS, y["joints"], y["joint_limits_rad"],
+                                                    y["mass"], y["com"])):
+        lim_deg = [round(math.degrees(v), 6) for v in lim]
+        if q_deg is not None:
+            lim_deg = _data_limits(name, tuple(lim_deg), float(q_deg[:, k].min()), float(q_deg[:, k].max()), 2.0,
+                                   "deg", 1.0, widened if widened is not None else [])
+        row = _dh_joint(name, j["a"], j["d"], j["alpha"], j["offset"], lim_deg)
         # COM is given in the RTB (standard-DH) frame i of the link moved by joint i.
         row["mass"] = float(m)
         row["com"] = [round(1000.0 * c, 9) for c in com]
@@ -176,7 +195,40 @@ def _iiwa_model(folder: Path) -> dict:
             "joints": joints, "tool": [0.0, 0.0, 0.0], "gravity": [0.0, 0.0, -9.81]}
 
 
-def iiwa7_payload(payload_kg: float | None = 0.0, root: Path | str = SHARED_DATASETS) -> Dataset:
+IIWA_OTHER_RUNS = {"20161118": "20161118_run_1.csv", "exp1": "exp1_data1402.csv", "exp2": "exp2_data2636.csv"}
+"""The runs without a stated payload (probably none): an early run (304 rows) and the author's exp1 / exp2 (1402 /
+2636 rows); unlike the payload runs, every joint moves in them."""
+
+
+IIWA_TAU_SIGN = -1.0
+"""tau_<joint> = IIWA_TAU_SIGN x the file's tau_i (see iiwa7_payload)."""
+
+
+def _iiwa_run(folder: Path, file: str, tag: str, orientation: bool, torques: bool):
+    """One iiwa run: point ids, joints deg, marker position mm, extra columns (quaternion, torques)."""
+    cols = _read_columns(folder / file)
+    n = len(cols["theta_1"])
+    numbers = cols["number"].astype(int) if "number" in cols else np.arange(n)
+    points = [f"{tag}-{int(k):03d}" for k in numbers]
+    q = np.degrees(np.column_stack([cols[f"theta_{i}"] for i in range(1, 8)]))
+    xyz = np.column_stack([cols["m_03"], cols["m_13"], cols["m_23"]])
+    extra = {}
+    if orientation:
+        R = np.stack([np.column_stack([cols[f"m_{r}{c}"] for c in range(3)]) for r in range(3)], axis=1)
+        quat = quaternion_wxyz(R)
+        extra.update({c: quat[:, k] for k, c in enumerate(("qw", "qx", "qy", "qz"))})
+    if torques:
+        # the sensors report the gravity torque acting on the joint; the contract's tau is what the joint applies
+        extra.update({f"tau_{name}": IIWA_TAU_SIGN * cols[f"tau_{i}"] + 0.0
+                      for i, name in enumerate(IIWA_JOINTS, start=1)})
+    return points, q, xyz, extra
+
+
+_IIWA_EXTRA_FMT = {"qw": "{:.12f}", "qx": "{:.12f}", "qy": "{:.12f}", "qz": "{:.12f}"}
+
+
+def iiwa7_payload(payload_kg: float | None = 0.0, root: Path | str = SHARED_DATASETS, *,
+                  orientation: bool = False, torques: bool = False) -> Dataset:
     """KUKA LBR iiwa 7 R800 optical-tracker data (Zhangzhongqiu/new-calibration, 2016-12-16).
 
     ``payload_kg`` selects one 198-row run (0, 1.25, 2.5 or 5 kg); ``None`` gives
@@ -186,6 +238,20 @@ def iiwa7_payload(payload_kg: float | None = 0.0, root: Path | str = SHARED_DATA
     [0, 0, 0] (the flange centre) and is left for the calibration to identify.
     Every row is kept, including the repeated pairs of the 5 kg run; ``point`` is
     ``run<k>-<row number>`` so the ids stay unique when runs are combined.
+    Only A1 and A2 move in these runs (A3..A7 stay within 0.1 deg of 0).
+
+    Contract section 5 columns (``calib convert-dataset iiwa7_payload`` writes both):
+
+    * ``orientation=True``: ``qw,qx,qy,qz``, the rotation of the tracker's 4x4 marker pose (m_00..m_22) as a
+      unit quaternion (w >= 0): the orientation of the marker body in the camera frame, every row a 6-D row.
+      The marker body's rotation relative to the flange frame is unknown (like its offset): a constant a 6-D
+      calibration must identify along with the base.
+    * ``torques=True``: ``tau_A1..tau_A7``, the iiwa's joint torque sensors (N*m), so load-driven causes use
+      the measured load instead of the model's statics. SIGN FLIPPED (``IIWA_TAU_SIGN``): calib_core reads
+      ``tau_<joint>`` as the torque the joint applies to hold the arm (dV/dq, the opposite of the gravity load
+      of calib_core.statics), while the iiwa's sensors report the gravity torque acting on the joint: raw
+      ``tau_i`` = -1.3 .. -1.45 x dV/dq of the nominal model (correlation 0.9997-1.0 on A2, A4, A6; the factor
+      is the model's too light links, 15.5 kg against the real arm's ~22 kg).
     """
     folder = _folder(root, IIWA_DIR)
     if payload_kg is None:
@@ -195,23 +261,53 @@ def iiwa7_payload(payload_kg: float | None = 0.0, root: Path | str = SHARED_DATA
         if not runs:
             raise ValueError(f"no iiwa7 run with payload {payload_kg} kg; "
                              f"available: {sorted(IIWA_RUNS)} or None for all")
-    points, q, xyz, payload = [], [], [], []
+    points, q, xyz, payload, extra = [], [], [], [], {}
     for p in runs:
         run_no = list(IIWA_RUNS).index(p) + 1
-        cols = _read_columns(folder / IIWA_RUNS[p])
-        points += [f"run{run_no}-{int(n):03d}" for n in cols["number"]]
-        q.append(np.degrees(np.column_stack([cols[f"theta_{i}"] for i in range(1, 8)])))
-        xyz.append(np.column_stack([cols["m_03"], cols["m_13"], cols["m_23"]]))
-        payload.append(np.full(len(cols["number"]), p))
+        pts, qq, pp, ex = _iiwa_run(folder, IIWA_RUNS[p], f"run{run_no}", orientation, torques)
+        points += pts
+        q.append(qq)
+        xyz.append(pp)
+        payload.append(np.full(len(pts), p))
+        for c, v in ex.items():
+            extra.setdefault(c, []).append(v)
     which = "all four payload runs" if payload_kg is None else f"payload {runs[0]:g} kg run"
+    cols = {"payload": (np.concatenate(payload), "{:g}")}
+    cols.update({c: (np.concatenate(v), _IIWA_EXTRA_FMT.get(c, "{:.9g}")) for c, v in extra.items()})
     notes = (f"Zhangzhongqiu/new-calibration 20161216 iiwa7 {which} (optical tracker, camera frame, "
              "marker translation already mm); converted rad->deg, DH m->mm, COM m->mm; "
              "tool [0,0,0] = flange, marker offset unknown; only A1/A2 move in these runs; "
-             "5 kg rows are repeated pairs; licence none stated")
+             "5 kg rows are repeated pairs; "
+             + ("qw..qz = marker rotation (m_00..m_22) as a unit quaternion, marker-to-flange rotation unknown; "
+                if orientation else "")
+             + ("tau_A1..tau_A7 = measured joint torques N*m, sign flipped to the torque the joint applies (the "
+                "sensors report the gravity torque acting on it); " if torques else "")
+             + "no sigma column: upload with ?instrument=optical (the tracker is an unnamed optical one); "
+             + "licence none stated")
     name = "iiwa7_payload" if payload_kg is None else f"iiwa7_payload_{runs[0]:g}kg"
-    csv_text = _csv_text(points, IIWA_JOINTS, np.vstack(q), np.vstack(xyz),
-                         {"payload": (np.concatenate(payload), "{:g}")})
+    csv_text = _csv_text(points, IIWA_JOINTS, np.vstack(q), np.vstack(xyz), cols)
     return Dataset(name, _iiwa_model(folder), csv_text, notes)
+
+
+def iiwa7_run(run: str, root: Path | str = SHARED_DATASETS, *, orientation: bool = True,
+              torques: bool = True) -> Dataset:
+    """One of the iiwa runs without a stated payload (``IIWA_OTHER_RUNS``: "20161118", "exp1", "exp2"), in which
+    every joint moves: same model and columns as :func:`iiwa7_payload` but no ``payload`` column (unknown,
+    probably none). exp2 holds at least one gross outlier (about 52 mm, NOTES)."""
+    if run not in IIWA_OTHER_RUNS:
+        raise ValueError(f"unknown iiwa7 run {run!r}; available: {list(IIWA_OTHER_RUNS)}")
+    folder = _folder(root, IIWA_DIR)
+    points, q, xyz, extra = _iiwa_run(folder, IIWA_OTHER_RUNS[run], run, orientation, torques)
+    cols = {c: (v, _IIWA_EXTRA_FMT.get(c, "{:.9g}")) for c, v in extra.items()}
+    widened: list[str] = []
+    model = _iiwa_model(folder, q, widened)
+    notes = (f"Zhangzhongqiu/new-calibration iiwa7 run {run} ({IIWA_OTHER_RUNS[run]}, {len(points)} rows, every joint "
+             "moves; payload not stated); optical tracker, camera frame, mm; rad->deg; tool [0,0,0] = flange, "
+             f"marker offset unknown; limits widened to the data: {'; '.join(widened) or 'none'}"
+             + ("; qw..qz = marker rotation as a unit quaternion" if orientation else "")
+             + ("; tau_A1..tau_A7 = measured joint torques N*m, sign flipped to the torque the joint applies"
+                if torques else "") + "; no sigma column: upload with ?instrument=optical; licence none stated")
+    return Dataset(f"iiwa7_{run}", model, _csv_text(points, IIWA_JOINTS, q, xyz, cols), notes)
 
 
 # --- DLR Agile Justin ---------------------------------------------------------------------
@@ -392,7 +488,8 @@ def _data_limits(name: str, vendor: tuple[float, float] | None, lo_d: float, hi_
     lo, hi = vendor
     if lo_d < lo or hi_d > hi:
         new = (min(lo, lo_d - pad), max(hi, hi_d + pad))
-        widened.append(f"{name} [{lo * scale:g}, {hi * scale:g}] -> [{new[0] * scale:.1f}, {new[1] * scale:.1f}] {unit} "
+        widened.append(f"{name} [{lo * scale:g}, {hi * scale:g}] -> [{new[0] * scale:.1f}, {new[1] * scale:.1f}] "
+                       f"{unit} "
                        f"(data {lo_d * scale:.1f} .. {hi_d * scale:.1f})")
         lo, hi = new
     return [math.floor(lo * 1e9) / 1e9, math.ceil(hi * 1e9) / 1e9]
@@ -453,14 +550,12 @@ def agile_justin_tree(root: Path | str = SHARED_DATASETS, *, limits: str = "data
     hand at the TCP; mount rows 0 kg. Gravity -z of the robot base (the Vicon frame is z up; T_c0 turns about z).
     Joint values are commanded; the robot is visibly elastic (21 mm before calibration in the paper).
     """
-    import yaml as _yaml
-
     if limits not in ("data", "vendor"):
         raise ValueError(f"limits must be 'data' or 'vendor', not {limits!r}")
     from .frames import nearest_rotation
 
     folder = _folder(root, JUSTIN_DIR)
-    y = _yaml.safe_load((folder / "justin19_nominal.yaml").read_text())
+    y = yaml.safe_load((folder / "justin19_nominal.yaml").read_text())
     cols = _read_columns(folder / "measurements_flat.csv")
     lim_deg = y["joint_limits_deg"]
     pad = math.radians(JUSTIN_LIMIT_PAD_DEG)
@@ -631,12 +726,11 @@ def _urdf_rows(text: str, base: str, target: str) -> tuple[list[dict], dict, dic
     return rows, tgt, raw_limits
 
 
-def _hilti_rows(path: Path) -> list[dict]:
-    """Every measurement of one recording: height, IK solution space, stationing / evaluation, the YAML fields."""
-    import yaml as _yaml
-
-    loader = getattr(_yaml, "CSafeLoader", _yaml.SafeLoader)
-    doc = _yaml.load(path.read_text(), Loader=loader)
+def _hilti_rows(path: Path) -> tuple[list[dict], list[str]]:
+    """Every measurement of one recording (height, IK solution space, stationing / evaluation, the YAML fields)
+    and the recording's joint names."""
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # the C loader when built: 5x faster on 250 kB
+    doc = yaml.load(path.read_text(), Loader=loader)
     out = []
     for h, hv in doc["column_heights"].items():
         for s, sv in hv["solution_spaces"].items():
@@ -663,8 +757,9 @@ def hilti_trailblazer(root: Path | str = SHARED_DATASETS, *, files: tuple[str, .
     calibrated value in the URDF) in ``tool_link``. Masses and centres of mass are each row's child link
     inertial from the URDF (CAD); side branches (tracks_compartments, 0.1 kg) are left out. Gravity -z of
     base_link; the seesaw / wooden-slab setups tilt the base a little (the accelerometers show it; not modelled).
-    Limits: the URDF's, widened by the data + 2 deg where the data go beyond (dsr_joint3 reaches 2.819 rad
-    against 2.7925); the notes list it.
+    Limits: the URDF's (the data stay within them: dsr_joint3 reaches -2.53 .. 1.59 rad of +-2.7925, the column
+    1.98 .. 3.87 m of 1.48 .. 3.972); a limit the data went beyond would be widened to the data + 2 deg (1 cm) and
+    listed in the notes, so the CSV uploads with the default ``?limits=reject``.
 
     CSV: one row per measurement (stationing and evaluation alike), ``point`` =
     ``<file>/h<height>/s<solution space>/<stationing|evaluation><id>``, the 7 joints (m, rad), ``x,y,z`` (m),
@@ -711,13 +806,13 @@ def hilti_trailblazer(root: Path | str = SHARED_DATASETS, *, files: tuple[str, .
     extra = {"setup": (setup, "{}"), "timestamp": (_iso(np.array([m["time"] for m in recs])), "{}"),
              "temperature": (temp, "{:g}"), "sigma": (np.full(len(recs), HILTI_SIGMA_MM / 1000.0), "{:g}")}
     csv_text = _csv_text(points, tuple(joint_names), q, xyz, extra, q_fmt="{:.12g}", xyz_fmt="{:.10g}")
-    notes = (f"Hilti Trailblazer (lifting column + Doosan M1013), Hilti-Research/construction_robot_stationing_datasets "
-             f"f26546d, {len(recs)} measurements of {len(files)} recordings ({', '.join(files)}), total-station prism "
-             f"in m; model from trailblazer.urdf joint by joint (fixed rows, xyz/rpy/axis rows, telescope stages as "
-             f"coupled rows 0.5 q - 0.706 / 0.5 q - 0.736 m, column_prismatic_joint as its own leaf row, target prism at "
-             f"prism_calib in tool_link), masses/com = URDF inertials (CAD); setup per {setup_by} "
-             f"({len(dict.fromkeys(setup))} setups); temperature 21 deg C (outdoor 9, README); sigma "
-             f"{HILTI_SIGMA_MM} mm per axis (PLT 300 datasheet); limits widened to the data: "
+    notes = (f"Hilti Trailblazer (lifting column + Doosan M1013), Hilti-Research/construction_robot_stationing_"
+             f"datasets f26546d, {len(recs)} measurements of {len(files)} recordings ({', '.join(files)}), "
+             "total-station prism in m; model from trailblazer.urdf joint by joint (fixed rows, xyz/rpy/axis rows, "
+             "telescope stages as coupled rows 0.5 q - 0.706 / 0.5 q - 0.736 m, column_prismatic_joint as its own "
+             "leaf row, target prism at prism_calib in tool_link), masses/com = URDF inertials (CAD); "
+             f"setup per {setup_by} ({len(dict.fromkeys(setup))} setups); temperature 21 deg C (outdoor 9, README); "
+             f"sigma {HILTI_SIGMA_MM} mm per axis (PLT 300 datasheet); limits widened to the data: "
              f"{'; '.join(widened) or 'none'}; accelerometers, doosan_cmd and upside_down not carried; "
-             f"units m/rad; LICENCE CC BY-NC-SA 3.0 (non-commercial, share alike)")
+             "units m/rad; LICENCE CC BY-NC-SA 3.0 (non-commercial, share alike)")
     return Dataset("hilti_trailblazer", model, csv_text, notes)

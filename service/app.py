@@ -6,6 +6,8 @@ import logging
 from contextlib import asynccontextmanager
 from pathlib import Path
 
+import anyio
+import anyio.to_thread
 from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.responses import HTMLResponse, JSONResponse
@@ -22,8 +24,10 @@ from .db import Database, DatabaseUnavailable
 from .deps import TokenAuthMiddleware, check_token_setting
 from .jobs.models import Job
 from .jobs.router import router as jobs_router
-from .limits import BodyLimitMiddleware, HeadMiddleware, InternalErrorMiddleware
+from .limits import (MAX_PREDICT_BYTES, MAX_PREDICT_ROWS, BatchLimitMiddleware, BodyLimitMiddleware, HeadMiddleware,
+                     InternalErrorMiddleware)
 from .measurements.router import router as measurements_router
+from .plans.router import router as plans_router
 from .robots.router import router as robots_router
 
 DESCRIPTION = """Robot calibration service (contract: model JSON, measurement CSV, REST API).
@@ -35,10 +39,15 @@ Every error is an RFC 9457 `application/problem+json` document; input problems a
 When the server sets `CALIB_API_TOKEN`, every call but `GET /health` (reads, reports, these docs included) needs
 `Authorization: Bearer <token>` (or HTTP Basic with the token as password, for a browser).
 A database that is down, read-only or gone answers `503` with `Retry-After`; `GET /health` says `unavailable`.
-`GET /robots` is paged (`limit`, `offset`; `X-Total-Count` and `Link: rel="next"` headers)."""
+`GET /robots` is paged (`limit`, `offset`; `X-Total-Count` and `Link: rel="next"` headers).
+""" + (f"`predict` and `compensate` take at most {MAX_PREDICT_ROWS} rows (poses, targets) and "
+       f"{MAX_PREDICT_BYTES // 2**20} MiB per request: more is `413`, naming the field, its count and the maximum; "
+       "send the rest in further requests.")
 
 log = logging.getLogger("service")
 RETRY_AFTER_S = 5
+HEALTH_THREADS = 2
+"""/health runs in threads of its own (at most this many at once), not in the routes' shared pool."""
 DOCS_ASSETS = "/docs-assets"
 
 
@@ -66,6 +75,10 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        # the sync routes' shared thread pool (anyio's default limiter, 40): under load its threads are CSV
+        # parsing and validation, Python holding the GIL; the more at once, the longer the event loop and
+        # /health wait for the GIL between two steps, for no more throughput (one process: one core of Python)
+        anyio.to_thread.current_default_thread_limiter().total_tokens = settings.route_threads
         d = None
         if run_dispatcher:
             from .queue.worker import Dispatcher
@@ -105,20 +118,29 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
 
     for exc_class in (OperationalError, InterfaceError, PoolTimeoutError):
         app.add_exception_handler(exc_class, database_unavailable)
-    # the edge, innermost first (each add wraps the previous): token, 500s, body limit, HEAD
+    # the edge, innermost first (each add wraps the previous): predict/compensate size, token, 500s, body limit, HEAD
+    app.add_middleware(BatchLimitMiddleware)
     app.add_middleware(TokenAuthMiddleware, token=settings.api_token, open_paths=("/health",))
     app.add_middleware(InternalErrorMiddleware, handler=app.exception_handlers[Exception])
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_upload_bytes)
     app.add_middleware(HeadMiddleware)
     for r in (robots_router, measurements_router, jobs_router, calibrations_router):
         app.include_router(r)
+    app.include_router(plans_router)
     _install_docs(app)
+
+    health_threads = anyio.CapacityLimiter(HEALTH_THREADS)
 
     @app.get("/health", response_model=Health, tags=["health"], summary="Liveness, database and queue depth",
              responses={503: {"description": "the database is unreachable, gone or read-only"}})
-    def health():
+    async def health():
         """`ok`, or `unavailable` with 503 and `Retry-After`: the database does not answer, or (SQLite) its file
         is no longer where it was opened or cannot be written. Never needs the API token."""
+        return await anyio.to_thread.run_sync(check_health, limiter=health_threads)
+
+    def check_health():
+        """/health's work, in a thread of its own limiter: the routes' shared thread pool (CALIB_ROUTE_THREADS)
+        can be all busy under load, and /health must not queue behind them (issue 10, the red team's load)."""
         db: Database = app.state.db
         trouble = db.problems()
         jobs: dict[str, int] = {}

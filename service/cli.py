@@ -84,25 +84,49 @@ def cmd_demo(args) -> int:
     return run(args)
 
 
-def cmd_convert_dataset(args) -> int:
-    import json
+CONVERTIBLE = ("dlr_agile_justin", "hilti_trailblazer", "iiwa7_payload", "motoman_leica", "iiwa7_exp1", "iiwa7_exp2",
+               "iiwa7_20161118", "agile_justin_right", "agile_justin_left")
+"""`calib convert-dataset` names: the four dataset folders, the iiwa's other runs, the per-arm Justin chains (older)."""
 
+
+def _dataset_readers(args) -> dict:
     from calib_core import datasets
 
-    readers = {"motoman_leica": datasets.motoman_leica, "iiwa7_payload": lambda: datasets.iiwa7_payload(None),
-               "agile_justin_right": lambda: datasets.agile_justin("right"),
-               "agile_justin_left": lambda: datasets.agile_justin("left")}
-    try:
-        ds = readers[args.name]()
-    except FileNotFoundError as exc:
-        print(f"calib convert-dataset: {exc}", file=sys.stderr)
-        return 2
-    out = Path(args.outdir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "model.json").write_text(json.dumps(ds.model, indent=2) + "\n")
-    (out / "measurements.csv").write_text(ds.csv_text)
-    print(f"{out / 'model.json'}\n{out / 'measurements.csv'}\n{ds.notes}")
-    print(f"try: calib demo --robot {out / 'model.json'} --data {out / 'measurements.csv'}")
+    root = Path(args.root) if args.root else datasets.SHARED_DATASETS
+    return {
+        "dlr_agile_justin": lambda: datasets.agile_justin_tree(root, limits=args.limits),
+        "hilti_trailblazer": lambda: datasets.hilti_trailblazer(root, setup_by=args.setup_by),
+        "iiwa7_payload": lambda: datasets.iiwa7_payload(None, root, orientation=True, torques=True),
+        "motoman_leica": lambda: datasets.motoman_leica(root),
+        "iiwa7_exp1": lambda: datasets.iiwa7_run("exp1", root),
+        "iiwa7_exp2": lambda: datasets.iiwa7_run("exp2", root),
+        "iiwa7_20161118": lambda: datasets.iiwa7_run("20161118", root),
+        "agile_justin_right": lambda: datasets.agile_justin("right", root),
+        "agile_justin_left": lambda: datasets.agile_justin("left", root),
+    }
+
+
+def cmd_convert_dataset(args) -> int:
+    """A third-party dataset (read from ../shared/datasets or --root, never copied into the repository) as contract
+    model.json + measurements.csv (+ NOTES.txt: source, units, licence, what was widened); `all` writes the four
+    datasets into OUTDIR/<name>/."""
+    import json
+
+    readers = _dataset_readers(args)
+    names = CONVERTIBLE[:4] if args.name == "all" else (args.name,)
+    for name in names:
+        try:
+            ds = readers[name]()
+        except FileNotFoundError as exc:
+            print(f"calib convert-dataset: {exc}", file=sys.stderr)
+            return 2
+        out = Path(args.outdir) / name if args.name == "all" else Path(args.outdir)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "model.json").write_text(json.dumps(ds.model, indent=2) + "\n")
+        (out / "measurements.csv").write_text(ds.csv_text)
+        (out / "NOTES.txt").write_text(ds.notes + "\n")
+        print(f"{out / 'model.json'}\n{out / 'measurements.csv'}\n{ds.notes}")
+        print(f"try: calib demo --robot {out / 'model.json'} --data {out / 'measurements.csv'}")
     return 0
 
 
@@ -169,6 +193,74 @@ def cmd_export_urdf(args) -> int:
     return 0
 
 
+def cmd_plan(args) -> int:
+    """Poses to measure (contract section 5, `POST /robots/{id}/plan`) as a CSV of the actuated joints, model units,
+    that a robot program can run; `--data` plans after a measured set (diagnosis: after diagnosing it here)."""
+    import json
+
+    import numpy as np
+
+    from calib_core.identify import identify
+    from calib_core.io import MeasurementError, parse_measurements
+    from calib_core.model import LENGTH_TO_MM, ModelError, parse_model
+    from calib_core.plan import lookalike_pairs, plan, tracker_of
+
+    from .plans.service import plan_csv
+
+    try:
+        model = parse_model(json.loads(Path(args.robot).read_text()))
+        meas = parse_measurements(Path(args.data).read_bytes(), model) if args.data else None
+    except OSError as exc:
+        print(f"calib plan: {exc}", file=sys.stderr)
+        return 2
+    except (ModelError, MeasurementError, ValueError) as exc:
+        print(f"calib plan: {args.data if isinstance(exc, MeasurementError) else args.robot}: {exc}", file=sys.stderr)
+        return 1
+    effects, rivals, robot = (), (), None
+    if args.purpose == "diagnosis":
+        if meas is None:
+            print("calib plan: --purpose diagnosis needs --data (the measured set whose diagnosis lists look-alike "
+                  "causes)", file=sys.stderr)
+            return 2
+        from calib_core.diagnose import diagnose
+
+        print(f"diagnosing {args.data} ({meas.n_poses} poses) ...", file=sys.stderr, flush=True)
+        d = diagnose(model, meas)
+        effects, robot = d.calibration.effects, d.calibration.robot
+        rivals = lookalike_pairs(model, meas, effects, d.findings)
+        if not rivals:
+            print(f"calib plan: the diagnosis of {args.data} names no look-alike causes ({d.verdict()}): nothing to "
+                  "split; plan geometric poses instead", file=sys.stderr)
+            return 1
+    elif meas is not None:
+        robot = identify(model, meas, free=("base", "tool"), folds=0).robot
+    tracker = None
+    if args.tracker:
+        tracker = np.array([float(v) for v in args.tracker.split(",")]) * LENGTH_TO_MM[model.length_unit]
+    elif robot is not None:
+        tracker = tracker_of(robot)
+    try:
+        p = plan(model, args.n, args.purpose, seed=args.seed, candidates=args.candidates, tracker_mm=tracker,
+                 max_incidence_deg=args.max_incidence, meas=meas, effects=effects, rivals=rivals)
+    except ValueError as exc:
+        print(f"calib plan: {exc}", file=sys.stderr)
+        return 1
+    text = plan_csv(model, p)
+    if args.out:
+        Path(args.out).write_text(text)
+    else:
+        sys.stdout.write(text)
+    g = p.observability["geometry"]
+    print(f"{args.n} poses ({p.observability['criterion'].split(':')[0]}) -> {args.out or 'standard output'}; "
+          f"planned vs random: condition number {g['planned']['condition_number']:.1f} vs "
+          f"{g['random']['condition_number']:.1f}, observability index {g['planned']['observability_index']:.4f} vs "
+          f"{g['random']['observability_index']:.4f}", file=sys.stderr)
+    for r in p.observability.get("rivals", []):
+        print(f"{r['found']} vs {r['look_alike']}: separation {r['planned']['separation_chi2']:.0f} (random poses: "
+              f"{r['random']['separation_chi2']:.0f}, chi-square units)", file=sys.stderr)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="calib", description="Robot calibration service")
     p.add_argument("--log-level", default="INFO")
@@ -207,9 +299,20 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--keep-serving", action="store_true", help="leave the service running at the end (Ctrl-C stops it)")
     demo.set_defaults(fn=cmd_demo)
     cv = sub.add_parser("convert-dataset", help="write a real dataset of ../shared/datasets as contract model.json "
-                        "and measurements.csv")
-    cv.add_argument("name", choices=["motoman_leica", "iiwa7_payload", "agile_justin_right", "agile_justin_left"])
+                        "and measurements.csv",
+                        description="Converts a third-party dataset (read in place, never copied) into a contract "
+                        "model.json, measurements.csv and NOTES.txt (source, units, licence, limits widened).")
+    cv.add_argument("name", choices=[*CONVERTIBLE, "all"], help="the dataset; 'all': the four dataset folders, "
+                    "each into OUTDIR/<name>/")
     cv.add_argument("outdir")
+    cv.add_argument("--root", metavar="DIR", help="the folder holding the dataset folders (default ../shared/datasets "
+                    "next to the repository, or CALIB_SHARED_DATASETS)")
+    cv.add_argument("--limits", choices=["data", "vendor"], default="data",
+                    help="dlr_agile_justin: vendor limits widened to what the data reach (default) or the vendor "
+                    "limits as published (then upload with ?limits=warn / calib demo --limits warn)")
+    cv.add_argument("--setup-by", choices=["file", "station"], default="file",
+                    help="hilti_trailblazer: one base setup per recording (default) or per column height x IK "
+                    "solution space (105 setups)")
     cv.set_defaults(fn=cmd_convert_dataset)
     iu = sub.add_parser("import-urdf", help="a URDF chain as contract model JSON (revolute, continuous, prismatic, "
                         "fixed joints; inertials as masses)")
@@ -226,6 +329,24 @@ def main(argv: list[str] | None = None) -> int:
     eu.add_argument("--name", help="the URDF robot name (default: the model's)")
     eu.add_argument("-o", "--output", metavar="OUT.urdf", help="write here (default: standard output)")
     eu.set_defaults(fn=cmd_export_urdf)
+    pl = sub.add_parser("plan", help="which poses to measure: a CSV of joint values a robot program can run",
+                        description="Plans poses within the joint limits whose target faces the tracker: `geometric` "
+                        "(D-optimal for the geometric parameters, load variety when the model has masses) or "
+                        "`diagnosis` (the poses that best tell apart the look-alike causes the diagnosis of --data "
+                        "names).")
+    pl.add_argument("--robot", required=True, metavar="MODEL.json", help="a contract model file")
+    pl.add_argument("--n", type=int, default=50, help="how many poses (default 50)")
+    pl.add_argument("--purpose", choices=["geometric", "diagnosis"], default="geometric")
+    pl.add_argument("--data", metavar="MEASUREMENTS.csv", help="a measured set: the plan adds to it (required for "
+                    "diagnosis, which diagnoses it first)")
+    pl.add_argument("--out", metavar="PLAN.csv", help="write here (default: standard output)")
+    pl.add_argument("--seed", type=int, default=0, help="seed of the candidate poses (default 0)")
+    pl.add_argument("--candidates", type=int, default=20000, help="random candidate poses (default 20000)")
+    pl.add_argument("--tracker", metavar="X,Y,Z", help="tracker position in the robot base frame, model length unit "
+                    "(default: where --data was measured from, else 3 m from the workspace centre)")
+    pl.add_argument("--max-incidence", type=float, metavar="DEG", help="largest angle between the target's outward "
+                    "direction and its line of sight to the tracker (default 60)")
+    pl.set_defaults(fn=cmd_plan)
     args = p.parse_args(argv)
     _logging(args.log_level)
     return args.fn(args)

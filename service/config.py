@@ -32,6 +32,7 @@ class Settings:
     warm_pool: bool = True  # CALIB_WARM_POOL: start the job processes (imports, one tiny calibration) before serving
     warmup_timeout_s: float = 30.0  # CALIB_WARMUP_TIMEOUT_S: `calib serve` waits at most this long for a warm pool
     test_poison: bool = False  # CALIB_TEST_POISON: tests only, CSV comment markers make a job crash or spin (runner.py)
+    route_threads: int = 8  # CALIB_ROUTE_THREADS: the API's sync routes run at most this many at once (see app.py)
     extra: dict = field(default_factory=dict)
 
     @classmethod
@@ -55,6 +56,7 @@ class Settings:
             warm_pool=os.environ.get("CALIB_WARM_POOL", "1").lower() not in ("0", "false", "no"),
             warmup_timeout_s=_float("CALIB_WARMUP_TIMEOUT_S", 30.0),
             test_poison=os.environ.get("CALIB_TEST_POISON", "").lower() in ("1", "true", "yes"),
+            route_threads=max(1, _int("CALIB_ROUTE_THREADS", 8)),
         )
 
     @property

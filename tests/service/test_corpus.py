@@ -285,9 +285,13 @@ def test_error_responses_are_small_and_quick(server, robot_id):
     body = assert_problem(r, 422)
     assert len(r.content) < 4096 and body["error_count"] >= 1, len(r.content)
     r = server.client.post("/calibrations/nope/predict", json={"joints": [["x"]] * 100_000})
+    body = assert_problem(r, 413)  # over MAX_PREDICT_ROWS: refused before parsing (test_health_isolation.py)
+    assert len(r.content) < 16384, len(r.content)
+    assert body["items"] == 100_000 and body["field"] == "body.joints", body
+    r = server.client.post("/calibrations/nope/predict", json={"joints": [["x"]] * 10_000})
     body = assert_problem(r, 422)
     assert len(r.content) < 16384, len(r.content)
-    assert body["error_count"] == 100_000 and body["errors_truncated"] is True and len(body["errors"]) == 50
+    assert body["error_count"] == 10_000 and body["errors_truncated"] is True and len(body["errors"]) == 50
     assert time.perf_counter() - t < 15.0
     assert server.client.get("/health").status_code == 200
 
