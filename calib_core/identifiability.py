@@ -76,11 +76,12 @@ class Identifiability:
 
 
 def preference_order(names: list[str]) -> list[int]:
-    """Base, tool, then the joint parameters in chain order with every beta last."""
-    base = [i for i, s in enumerate(names) if s.startswith("base.")]
-    tool = [i for i, s in enumerate(names) if s.startswith("tool.")]
-    joint = [i for i, s in enumerate(names) if not s.startswith(("base.", "tool.")) and not s.endswith(".beta")]
-    beta = [i for i, s in enumerate(names) if not s.startswith(("base.", "tool.")) and s.endswith(".beta")]
+    """Base(s), target point(s), then the joint parameters in row order with every beta last."""
+    reg = ("base.", "base[", "tool.", "tool[")  # one base per setup, one point per target
+    base = [i for i, s in enumerate(names) if s.startswith(reg[:2])]
+    tool = [i for i, s in enumerate(names) if s.startswith(reg[2:])]
+    joint = [i for i, s in enumerate(names) if not s.startswith(reg) and not s.endswith(".beta")]
+    beta = [i for i, s in enumerate(names) if not s.startswith(reg) and s.endswith(".beta")]
     return base + tool + joint + beta
 
 

@@ -154,7 +154,7 @@ class JointScale(Effect):
         j = self.joints[0]
         q = ctx.meas.joints[:, j]
         lo, hi = ctx.model.limits[j]
-        mid = 0.0 if not np.isfinite(lo + hi) else 0.5 * (lo + hi)
+        mid = 0.5 * (lo + hi) if np.isfinite(lo) and np.isfinite(hi) else 0.0
         N, n = ctx.meas.joints.shape
         unit = "mm" if ctx.model.prismatic[j] else "deg"
         reg = q if ctx.model.prismatic[j] else np.degrees(q)

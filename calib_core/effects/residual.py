@@ -38,7 +38,7 @@ class ResidualField(Effect):
 
     def _features(self, model, q) -> np.ndarray:
         cols, z = [], []
-        for j in range(model.n_joints):
+        for j in model.actuated:  # coupled rows follow them, fixed rows never move
             if model.prismatic[j]:
                 s = _scaled(model, q)[:, j]
                 cols += [s, 1.5 * s**2 - 0.5, 2.5 * s**3 - 1.5 * s]
@@ -56,7 +56,7 @@ class ResidualField(Effect):
         return phi
 
     def _n(self, model) -> int:
-        per_joint = sum(3 if p else 4 for p in model.prismatic)
+        per_joint = sum(3 if p else 4 for p in model.prismatic[model.actuated])
         return per_joint + (self.n_features if self.length_scale is not None else 0)
 
     def parameter_names(self, model):

@@ -234,3 +234,18 @@ def test_orientation_rows_sharpen_the_geometry(seed):
     assert full["orientation"]["rows"] == 25
     assert len(full["robot_state"]["x"]) == len(K.nominal_vector(model))  # the robot's model, no virtual targets
     assert "targets" not in full["calibrated_model"]
+
+
+def test_registration_frees_every_setups_base_and_every_target(tree):
+    """identify(free=("base", "tool")) (the registration the model selection starts from) frees base[s].* and
+    tool[t].*, and a full fit ranks them first, so no target point is traded for a row's geometry."""
+    twin = Twin(tree, seed=6, repeatability_mm=0.0, tracker_noise=False)
+    a, b = twin.measure(n=60), twin.measure(n=60)
+    meas = Measurements(joints=np.r_[a.joints, b.joints], points=np.r_[a.points, b.points + [900.0, 0.0, 0.0]],
+                        target=np.r_[a.target, b.target], setup=np.r_[np.zeros(60, int), np.ones(60, int)],
+                        setup_names=("A", "B"))
+    reg = identify(tree, meas, free=("base", "tool"), folds=0)
+    freed = {reg.names[i] for i in reg.free}
+    assert freed == {n for n in reg.names if n.startswith(("base[", "tool["))}
+    full = identify(tree, meas, folds=0, regularize=False)
+    assert {n for n in full.names if n.startswith(("base[", "tool["))} <= {full.names[i] for i in full.free}
