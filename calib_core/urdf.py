@@ -539,6 +539,11 @@ def _parse_mdh(root, links, joints, by_child, base, target, scale, length_unit, 
             row["mass"] = float(m)
             row["com"] = [float(0.0 if abs(v) < 1e-15 * max(1.0, scale) else v) for v in c]
     doc[EXTENSION] = ext
+    return _validated(doc)
+
+
+def _validated(doc: dict) -> dict:
+    """The converted model document, checked by the contract parser; its errors named by URDF element."""
     try:
         parse_model(doc)
     except ModelError as exc:
@@ -706,12 +711,7 @@ def _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit,
         "robot": root.get("name"), "base_link": base, "target_link": ",".join(targets), "target_links": targets,
         "form": "xyz", "links": {j.name: j.child for j in order}, "continuous": continuous, "limits": extra_limits,
     }
-    try:
-        parse_model(doc)
-    except ModelError as exc:
-        raise UrdfError([{**e, "field": f"{_model_field_to_urdf(e['field'], doc)} (model {e['field']})"}
-                         for e in exc.errors]) from None
-    return doc
+    return _validated(doc)
 
 
 def _model_field_to_urdf(field: str, doc: dict) -> str:

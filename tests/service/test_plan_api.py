@@ -14,21 +14,7 @@ from calib_core.robots import spray7
 from calib_world import World, hide
 
 from .conftest import ROOT, assert_problem
-from .test_api import run_job
-
-
-@pytest.fixture(scope="module")
-def robot(server, model_doc) -> dict:
-    r = server.client.post("/robots", json=model_doc)
-    assert r.status_code == 201, r.text
-    return r.json()
-
-
-@pytest.fixture(scope="module")
-def mset(server, robot, csv_text) -> dict:
-    r = server.client.post(f"/robots/{robot['id']}/measurements", files={"file": ("cell.csv", csv_text, "text/csv")})
-    assert r.status_code == 201, r.text
-    return r.json()
+from .test_api import mset, robot, run_job  # noqa: F401 (module fixtures: a robot and its measurement set)
 
 
 def _within_limits(model_doc, joints):
