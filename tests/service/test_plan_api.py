@@ -64,7 +64,8 @@ def test_bad_requests_name_the_field_and_value(server, robot, body, field, value
 
 
 def test_an_unknown_robot_is_404(server):
-    assert_problem(server.client.post("/robots/nope/plan", json={"n_poses": 10}), 404)
+    err = assert_problem(server.client.post("/robots/nope/plan", json={"n_poses": 10}), 404)
+    assert "robot" in err["detail"] and "nope" in err["detail"], err
 
 
 def test_a_diagnosis_plan_needs_look_alikes_to_split(server, robot, mset):
