@@ -2,9 +2,10 @@
 
 1. Speed: time to plan 50 poses out of 20,000 candidates (geometric, best of 3), spray7 and arm6.
 2. Geometric accuracy: per seed a World(model, seed) (true geometry, tracker frame, tool, wrong masses, its own
-   noise) measured at 50 planned poses (D-optimal with load variety, the default; and geometry only), at 50 and
-   150 random poses the tracker can see (the planner's visible candidates) and at 150 random poses anywhere
-   within the limits; each set calibrated as the service's `geometric` job does (select_geometry); validation
+   noise) measured at 50 planned poses (D-optimal with load variety, the default; geometry only; and the
+   default without limit-biased candidates and exchange step, the first version), at 50 and 150 random poses
+   the tracker can see (uniform candidates kept by the planner's visibility rule) and at 150 random poses
+   anywhere within the limits; each set calibrated as the service's `geometric` job does (select_geometry); validation
    error = RMS 3-D distance to the world's noise-free truth at 300 fresh random poses, the condition number
    and observability index O1 of each set (as the calibration answer reports them), and the error linear
    theory predicts from each set's information matrix and the world's noise.
@@ -71,15 +72,40 @@ def predicted_rms_mm(model, world, q, q_val) -> float:
     return float(np.sqrt(np.mean(np.einsum("nip,pq,niq->n", Jv, Minv, Jv))))
 
 
+def best_possible_rms_mm(model, world, q, q_val, n: int, iterations: int = 300) -> tuple[float, float]:
+    """Linear theory's best validation RMS (mm) of any n poses taken from the candidates q: the I-optimal
+    approximate design (weights w >= 0 summing to 1 over the candidates, criterion tr(M(w)^-1 C) / n with C the
+    validation poses' mean J^T J, multiplicative algorithm) and its duality lower bound (2 tr(M^-1 C) - max_i
+    tr(J_i M^-1 C M^-1 J_i^T), a convexity bound on the optimum). No n distinct poses (integer weights 1/n)
+    can do better than the lower bound; returns (design, lower bound)."""
+    ident = structural(model).identifiable
+    jac = lambda qq: K.Chain(model, K.nominal_vector(model), qq).jacobian()[:, :, ident]  # noqa: E731
+    J = jac(q) / world.tracker_sigma_mm(world.geometric_points(q))[:, None, None]
+    Jv = jac(q_val)
+    C = np.einsum("nip,niq->pq", Jv, Jv) / len(q_val)
+    N, _, p = J.shape
+    flat = J.reshape(-1, p)
+    w = np.full(N, 1.0 / N)
+    for _ in range(iterations):
+        Minv = np.linalg.inv(flat.T @ (flat * np.repeat(w, 3)[:, None]))
+        crit = float(np.trace(Minv @ C))
+        phi = ((flat @ (Minv @ C @ Minv)) * flat).reshape(N, 3, p).sum(axis=(1, 2))
+        w *= np.sqrt(phi)
+        w /= w.sum()
+    return float(np.sqrt(crit / n)), float(np.sqrt(max(2 * crit - phi.max(), 0.0) / n))
+
+
 def accuracy_trial(robot: str, seed: int) -> list[dict]:
     """One world: every pose set calibrated and validated against the truth."""
     model = parse_model(ROBOTS[robot]())
     world = World(model, SEED_BASE + seed)
     rng = np.random.default_rng((seed, 1))
-    pool = visible_pool(model, 20000, np.random.default_rng((seed, 2)))
+    pool = visible_pool(model, 20000, np.random.default_rng((seed, 2)), extreme_share=0.0)
     sets = {
         "planned (D-optimal, load variety)": model.expand_joints(plan(model, N_PLAN, seed=seed).joints),
         "planned (D-optimal, geometry only)": model.expand_joints(plan(model, N_PLAN, seed=seed, loads=False).joints),
+        "planned (load variety; uniform candidates, greedy only)": model.expand_joints(
+            plan(model, N_PLAN, seed=seed, extreme_share=0.0, exchange=0).joints),
         f"random visible, {N_PLAN}": pool.q[rng.choice(len(pool.q), N_PLAN, replace=False)],
         f"random visible, {N_MORE}": pool.q[rng.choice(len(pool.q), N_MORE, replace=False)],
         f"random anywhere, {N_MORE}": world.sample_joints(N_MORE, rng),
@@ -95,6 +121,9 @@ def accuracy_trial(robot: str, seed: int) -> list[dict]:
                      "predicted_rms_mm": predicted_rms_mm(model, world, q, q_val),
                      "val_over_noise": float(err / noise), "condition_number": ident.condition_number,
                      "observability_index": ident.observability_index})
+    design, bound = best_possible_rms_mm(model, world, visible_pool(model, 20000, np.random.default_rng(seed)).q,
+                                         q_val, N_PLAN)
+    rows.append({"robot": robot, "seed": seed, "set": "best possible", "design_mm": design, "bound_mm": bound})
     return rows
 
 
@@ -185,12 +214,19 @@ def main(argv=None) -> None:
     print("| robot | pose set | poses | condition number | observability index O1 | validation RMS vs truth (mm) "
           "| / noise RMS | predicted by linear theory (mm) |\n|---|---|---|---|---|---|---|---|")
     for rb in ROBOTS:
-        for label in dict.fromkeys(r["set"] for r in rows):
+        for label in dict.fromkeys(r["set"] for r in rows if r["set"] != "best possible"):
             rs = [r for r in rows if r["robot"] == rb and r["set"] == label]
             m = {k: float(np.mean([r[k] for r in rs])) for k in ("condition_number", "observability_index",
                                                                   "val_rms_mm", "val_over_noise", "predicted_rms_mm")}
             print(f"| {rb} | {label} | {rs[0]['n']} | {m['condition_number']:.1f} | {m['observability_index']:.4f} "
                   f"| {m['val_rms_mm']:.4f} | {m['val_over_noise']:.2f} | {m['predicted_rms_mm']:.4f} |")
+    print(f"\nBest possible {N_PLAN} poses of the planner's visible candidates (linear theory, I-optimal approximate "
+          "design; no design of distinct poses beats the lower bound):")
+    for rb in ROBOTS:
+        rs = [r for r in rows if r["robot"] == rb and r["set"] == "best possible"]
+        each = ", ".join(f"{r['bound_mm']:.4f}" for r in rs)
+        print(f"- {rb}: design {np.mean([r['design_mm'] for r in rs]):.4f} mm, lower bound "
+              f"{np.mean([r['bound_mm'] for r in rs]):.4f} mm (per world: {each})")
     print(f"\n### Look-alike causes: {N_ADD} planned vs {N_ADD} random poses added (spray7, 150 random poses first)\n")
     print("| hidden | draw | first diagnosis | pair planned for | separation planned / random / needed (chi2) | "
           f"after +{N_ADD} planned | split | after +{N_ADD} random | split |\n|---|---|---|---|---|---|---|---|---|")

@@ -3,8 +3,10 @@
 Without data: the 7-DoF spray-painting robot of Wang et al. 2023 as a digital twin in the independent simulated
 world `calib_world` (its own kinematics, statics and noise; true geometry and masses off the model's, a laser
 tracker, one hidden physical cause drawn at random unless `--effect` names a world kind), 150 calibration poses
-and 100 validation poses. With `--robot MODEL.json --data MEASUREMENTS.csv`: real measurements, 30 % of
-the poses held out client-side for validation.
+(the first 50 planned by `POST /robots/{id}/plan`, D-optimal for the geometry, the others random) and 100
+validation poses; when the diagnosis lists look-alike causes a pose can split, 30 poses planned to split them are
+measured, added and diagnosed again. With `--robot MODEL.json --data MEASUREMENTS.csv`: real measurements, 30 %
+of the poses held out client-side for validation (a look-alike plan is shown, not measured).
 
 The story is printed on stdout; the progress bar and the server's failures go to stderr.
 """
@@ -36,6 +38,11 @@ from .cli import HIDDEN_KINDS
 from .config import Settings
 
 N_CAL, N_VAL = 150, 100
+N_PLAN = 50
+"""Of the simulated campaign's N_CAL calibration poses, this many are planned by POST /robots/{id}/plan (D-optimal
+for the geometry); the rest are random, the spread over the workspace the diagnosis compares causes on."""
+N_SPLIT = 30
+"""Poses planned (purpose `diagnosis`) to tell apart look-alike causes when the diagnosis lists some."""
 HOLDOUT_FRACTION = 0.3
 SIZE_RANGE = (4.0, 10.0)
 """A drawn hidden cause's part no geometric parameter can absorb is this many times the noise RMS."""
@@ -247,26 +254,37 @@ class Campaign:
     hidden: dict | None = None  # calib_world.hide's description of the hidden cause
     val_truth: np.ndarray | None = None  # noise-free validation points of the simulated world
     n_total: int = 0
+    n_planned: int = 0  # the first n_planned calibration poses are the geometric plan's
 
 
-def simulated(effect: str | None, seed: int) -> Campaign:
+def spray7_model() -> tuple[dict, RobotModel]:
+    """The simulated campaign's robot: its contract JSON and the parsed model."""
     from calib_core.robots import spray7
-    from calib_world import KINDS, World, hide
 
     doc = spray7()
-    model = parse_model(doc)
+    return doc, parse_model(doc)
+
+
+def simulated(effect: str | None, seed: int, planned: np.ndarray | None = None) -> Campaign:
+    """The twin's campaign: N_CAL calibration poses (the `planned` rows (k, n) first, internal units, then random
+    ones), the hidden cause sized on them, and N_VAL random validation poses; all drawn from `seed`."""
+    from calib_world import KINDS, World, hide
+
+    doc, model = spray7_model()
     rng = np.random.default_rng((seed, 1))
     kind = effect or str(rng.choice(KINDS))
     if kind != "none" and kind not in KINDS:
         raise DemoError(f"unknown effect {kind!r}: use one of {', '.join(KINDS)} or none")
     world = World(model, seed)
     hidden = None
+    planned = np.zeros((0, model.n_joints)) if planned is None else np.atleast_2d(np.asarray(planned, float))
+    size = float(np.exp(rng.uniform(*np.log(SIZE_RANGE)))) if kind != "none" else None
+    q = np.vstack([planned, world.sample_joints(N_CAL - len(planned), rng)])
     if kind != "none":
-        size = float(np.exp(rng.uniform(*np.log(SIZE_RANGE))))
-        hidden = hide(world, kind, size, rng, n=N_CAL)
-        q, thermal = hidden["q"], hidden["temperature"]
+        hidden = hide(world, kind, size, rng, q=q)
+        thermal = hidden["temperature"]
     else:
-        q, thermal = world.sample_joints(N_CAL, rng), False
+        thermal = False
     cal = world.measure(q, temperature=thermal)
     val = world.campaign(world.sample_joints(N_VAL, rng), temperature=thermal)
     rep = 1000 * world.repeatability_mm
@@ -275,7 +293,8 @@ def simulated(effect: str | None, seed: int) -> Campaign:
                            f"off by the paper's errors, masses not the model's, tool point off by millimetres, laser "
                            f"tracker noise 15 um + 6 um/m, repeatability {rep:.0f} um), seed {seed}",
                     validation=f"{N_VAL} more poses measured on the same twin, never uploaded",
-                    twin=world, hidden=hidden, val_truth=val.truth.points, n_total=N_CAL + N_VAL)
+                    twin=world, hidden=hidden, val_truth=val.truth.points, n_total=N_CAL + N_VAL,
+                    n_planned=len(planned))
 
 
 def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None, limits: str = "reject") -> Campaign:
@@ -329,8 +348,12 @@ def run(args) -> int:
         if args.data:
             camp = from_files(Path(args.robot), Path(args.data), seed, getattr(args, "instrument", None),
                               getattr(args, "limits", "reject"))
-        else:
-            camp = simulated(args.effect, seed)
+        else:  # measured after the plan step, on the server's planned poses
+            from calib_world import KINDS
+
+            if args.effect not in (None, "none", *KINDS):
+                raise DemoError(f"unknown effect {args.effect!r}: use one of {', '.join(KINDS)} or none")
+            camp = None
     except DemoError as exc:
         print(f"calib demo: {exc}", file=sys.stderr)
         return 2
@@ -345,22 +368,34 @@ def run(args) -> int:
         return 130
 
 
-def _story(args, settings: Settings, camp: Campaign, seed: int, log: Path, t_start: float) -> int:
-    model = camp.model
-    if camp.twin is not None:
+class Chapters:
+    """Numbered chapter headings (the story's chapters depend on the data and on what the service finds)."""
+
+    def __init__(self):
+        self.n = 0
+
+    def __call__(self, title: str) -> None:
+        self.n += 1
+        head(f"{self.n}. {title}")
+
+
+def _story(args, settings: Settings, camp: Campaign | None, seed: int, log: Path, t_start: float) -> int:
+    if camp is None:
         say("calib demo: the 7-DoF spray-painting robot of Wang et al. (Machines 2023, 11, 20): a 4 m rail, waist, "
             "two parallel pitch joints, forearm roll, a telescopic forearm (1700-2300 mm) and a wrist.")
     else:
+        model = camp.model
         say(f"calib demo on real measurements: robot {model.name} ({model.n_joints} joints, "
             f"{str(camp.model_doc.get('convention', 'mdh')).upper()}, {model.length_unit}/{model.angle_unit}).")
 
-    head("1. The service")
+    chapter = Chapters()
+    chapter("The service")
     db = settings.database_url
     server = Server.start(db, log)
     api = Api(server.url, settings.api_token)
     try:
         say(f"calib serve is running on {server.url} (database {_show_db(db)}; its log: {log}).", 3)
-        return _chapters(args, api, server, camp, seed, t_start)
+        return _chapters(args, api, server, camp, seed, t_start, chapter)
     finally:
         api.close()
         if args.keep_serving:
@@ -384,29 +419,43 @@ def _show_db(url: str) -> str:
         return url.split("@")[-1]
 
 
-def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start: float) -> int:
-    model = camp.model
-    head("2. The measurement campaign")
+def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, t_start: float,
+              chapter: Chapters) -> int:
+    if camp is None:  # simulated: plan the poses first, then measure the twin there
+        doc, model = spray7_model()
+        chapter("Which poses to measure: POST /robots/{id}/plan")
+        robot = api.call("POST", "/robots", (201,), json=doc).json()
+        say(f"POST /robots -> robot {robot['id']}.", 3)
+        planned = _plan_geometry(api, robot["id"], model, seed)
+        camp = simulated(args.effect, seed, planned)
+    else:
+        model = camp.model
+        robot = api.call("POST", "/robots", (201,), json=camp.model_doc).json()
+    chapter("The measurement campaign")
     say(f"Data: {camp.source}.", 3)
     if camp.twin is not None:
         hidden = "one physical cause the model does not know, drawn at random" if not args.effect else (
             "no cause beyond the geometry" if args.effect == "none" else f"one physical cause the model does not "
                                                                          f"know (--effect {args.effect})")
         say(f"The twin hides {hidden}: it is revealed at the end (calib demo --seed {seed} repeats this run).", 3)
-    say(f"Calibration poses: {camp.cal.n_poses}, uploaded. Validation: {camp.validation}.", 3)
-    robot = api.call("POST", "/robots", (201,), json=camp.model_doc).json()
+    if camp.n_planned:
+        say(f"Calibration poses: {camp.cal.n_poses}, uploaded: the {camp.n_planned} planned poses, then "
+            f"{camp.cal.n_poses - camp.n_planned} random ones within the joint limits (the spread over the "
+            f"workspace the diagnosis compares causes on). Validation: {camp.validation}.", 3)
+    else:
+        say(f"Calibration poses: {camp.cal.n_poses}, uploaded. Validation: {camp.validation}.", 3)
     params = {"limits": getattr(args, "limits", "reject")}
     if getattr(args, "instrument", None):
         params["instrument"] = args.instrument
     ms = api.call("POST", f"/robots/{robot['id']}/measurements", (201,), params=params,
                   files={"file": ("campaign.csv", camp.csv_text.encode(), "text/csv")}).json()
-    say(f"POST /robots -> robot {robot['id']}; POST /robots/{{id}}/measurements -> {ms['n_poses']} poses stored "
-        f"(set {ms['id']}).", 3)
+    say(("" if camp.n_planned else f"POST /robots -> robot {robot['id']}; ") +
+        f"POST /robots/{{id}}/measurements -> {ms['n_poses']} poses stored (set {ms['id']}).", 3)
     for o in ms.get("out_of_limits") or []:
         say(f"--limits warn: {o['joint']} outside its limits [{o['limits'][0]}, {o['limits'][1]}] {o['unit']} on "
             f"{o['rows']} row(s); the data span {o['min']:g} to {o['max']:g} {o['unit']}.", 3)
 
-    head("3. The calibration: POST /jobs {\"model\": \"auto\"}")
+    chapter("The calibration: POST /jobs {\"model\": \"auto\"}")
     say("The service identifies the geometric model, then looks at what it still gets wrong, names the cause, "
         "adds it to the model and checks the gain on poses it did not fit (a geometric-only job runs alongside, "
         "for comparison).", 3)
@@ -421,8 +470,9 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
     geo_cal = api.call("GET", f"/calibrations/{geo_job['calibration_id']}").json()
     say(f"Job {job['id']} succeeded in {dt:.1f} s: calibration {cal_id}, model {' + '.join(cal['model'])}, "
         f"{len(cal['parameters'])} parameters.", 3)
+    _observed(cal)
 
-    head(f"4. What the service found (errors on the {camp.val.n_poses} validation poses)")
+    chapter(f"What the service found (errors on the {camp.val.n_poses} validation poses)")
     before = evaluate(identify(model, camp.cal, free=("base", "tool"), folds=1), camp.val)
     geo_pred = api.predict_mm(geo_cal["id"], model, camp.val)
     ext_pred = api.predict_mm(cal_id, model, camp.val)
@@ -468,11 +518,15 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
         say(f"Against the twin's noise-free truth at the validation poses (what the tracker cannot show): {final} "
             f"RMS, for a measurement noise of {fmm(noise)} RMS.", 3)
 
-    head("5. Compensation: POST /calibrations/{id}/compensate")
+    if any(f.get("indistinguishable_from") for f in findings):
+        chapter("Telling look-alike causes apart: POST /robots/{id}/plan {\"purpose\": \"diagnosis\"}")
+        _split_lookalikes(api, robot["id"], ms["id"], camp, findings, seed)
+
+    chapter("Compensation: POST /calibrations/{id}/compensate")
     _compensation(api, camp, cal_id, before)
 
     if camp.hidden is not None or (camp.twin is not None and args.effect == "none"):
-        head("6. The twin's secret")
+        chapter("The twin's secret")
         _reveal(camp, findings)
 
     head("The report")
@@ -494,6 +548,132 @@ def _chapters(args, api: Api, server: Server, camp: Campaign, seed: int, t_start
             "up instead.", 3)
     say(f"Total demo time {time.monotonic() - t_start:.0f} s.", 3)
     return 0
+
+
+def _observed(cal: dict) -> None:
+    """One sentence on what the measured poses observe, from the calibration answer's `identifiability`."""
+    ident = cal.get("identifiability") or {}
+    if ident.get("condition_number") is None:
+        return
+    lacks = ident.get("unidentifiable") or []
+    frozen = ident.get("frozen_joints") or []
+    verdict = ("all the model's structure can identify" if ident.get("complete") else
+               "not everything the model's structure can identify: " + "; ".join(
+                   ([f"{len(lacks)} parameter(s) left at nominal ({', '.join(lacks)})"] if lacks else []) +
+                   ([f"{', '.join(frozen)} never moved"] if frozen else [])))
+    say(f"The measured poses observe the geometry with condition number {ident['condition_number']:.1f} and "
+        f"observability index O1 {ident['observability_index']:.4f} ({ident['rank']} identifiable parameters: "
+        f"{verdict}); the report lists the least well determined ones.", 3)
+
+
+def _label(f: dict) -> str:
+    """`kind[J1,J2]` of a finding or look-alike."""
+    return f"{f['kind']}[{','.join(f.get('joints') or [])}]"
+
+
+def _nested(f: dict, a: dict) -> bool:
+    """One is the other cause on more joints (calib_core.plan.nested, on the answer's labels)."""
+    x, y = set(f.get("joints") or []), set(a.get("joints") or [])
+    return f["kind"] == a["kind"] and f.get("harmonic") == a.get("harmonic") and (x <= y or y <= x)
+
+
+def _together(findings: list[dict], a: str, b: str) -> bool:
+    """Whether one finding still names both labels, as itself or as a look-alike."""
+    return any({a, b} <= {_label(f), *map(_label, f.get("indistinguishable_from") or [])} for f in findings)
+
+
+def _split_lookalikes(api: Api, robot_id: str, ms_id: str, camp: Campaign, findings: list[dict], seed: int) -> None:
+    """Plan N_SPLIT poses that tell the listed look-alikes apart; on the twin, measure them, add them to the
+    campaign as a new set, run `auto` on it and tell whether each pair is still listed."""
+    pairs = [(f, a) for f in findings for a in f.get("indistinguishable_from") or []]
+    say(f"The diagnosis lists causes these poses cannot tell apart: "
+        f"{'; '.join(f'{_label(f)} ~ {_label(a)}' for f, a in pairs)}.", 3)
+    nested = [(f, a) for f, a in pairs if _nested(f, a)]
+    if nested:
+        say(f"{'; '.join(f'{_label(a)} is {_label(f)}' for f, a in nested)} on more joints: the richer form fits "
+            "whatever the smaller one fits, so no pose can split them; the diagnosis keeps the smaller one.", 3)
+    if len(nested) == len(pairs):
+        return
+    say("The service plans the poses that best separate the others (T-optimal: the largest expected held-out "
+        "difference between the rivals).", 3)
+    body = {"n_poses": N_SPLIT, "purpose": "diagnosis", "measurement_set_id": ms_id, "seed": seed}
+    t0 = time.monotonic()
+    r = api.c.post(f"/robots/{robot_id}/plan", json=body)
+    dt = time.monotonic() - t0
+    if r.status_code != 200:  # e.g. only nested look-alikes: no pose can split them
+        detail = r.json().get("detail", r.text[:300]) if r.headers.get("content-type", "").endswith("json") else r.text
+        say(f"POST /robots/{{id}}/plan answered {r.status_code}: {detail}", 3)
+        return
+    p = r.json()
+    rivals = p["observability"]["rivals"]
+    say(f"POST /robots/{{id}}/plan {json.dumps(body)} -> {len(p['joints'])} poses in {dt:.1f} s. Expected "
+        "separation (chi-square units: how much worse the wrong model fits):", 3)
+    for rv in rivals:
+        verdict = "expected to split" if rv["expected_to_split"] else "may not split"
+        say(f"{rv['found']} vs {rv['look_alike']}: {rv['planned']['separation_chi2']:.0f} with the planned poses, "
+            f"{rv['random']['separation_chi2']:.0f} with as many random ones; the diagnosis needs about "
+            f"{rv['separation_needed_chi2']:.0f} -> {verdict}.", 5)
+    if camp.twin is None:
+        say("Measure these poses (`calib plan --purpose diagnosis` writes them as CSV for the robot program), add them "
+            "to the set and run the `auto` job again.", 3)
+        return
+    model = camp.model
+    cal = camp.cal
+    new = camp.twin.measure(planned_rows(model, p["joints"]), payload_kg=p.get("payload_kg"),
+                            temperature=cal.temperature is not None, start_time=float(cal.timestamp[-1]) + 20.0)
+    cat = lambda a, b: None if a is None else np.concatenate([a, b])  # noqa: E731
+    both = Measurements(np.vstack([cal.joints, new.joints]), np.vstack([cal.points, new.points]),
+                        list(cal.point_ids) + [f"S{i + 1:03d}" for i in range(new.n_poses)],
+                        cat(cal.timestamp, new.timestamp), cat(cal.temperature, new.temperature),
+                        cat(cal.payload, new.payload))
+    ms = api.call("POST", f"/robots/{robot_id}/measurements", (201,),
+                  files={"file": ("campaign+split.csv", write_measurements(both, model).encode(), "text/csv")}).json()
+    say(f"The twin is measured at the {new.n_poses} planned poses; the campaign with them uploaded as set {ms['id']} "
+        f"({ms['n_poses']} poses) and diagnosed again:", 3)
+    job = api.wait(api.submit(ms["id"], "auto"), ProgressBar())
+    again = api.call("GET", f"/calibrations/{job['calibration_id']}").json()
+    after = (again.get("diagnosis") or {}).get("findings") or []
+    named = "; ".join(_label(f) + "".join(f" ~ {_label(a)}" for a in f.get("indistinguishable_from") or [])
+                      for f in after) or "none"
+    say(f"Calibration {again['id']}: {named}.", 3)
+    for f, a in pairs:
+        if not _nested(f, a):
+            still = _together(after, _label(f), _label(a))
+            say(f"{_label(f)} vs {_label(a)}: {'still listed as look-alikes' if still else 'told apart'}.", 5)
+    say("The rest of the story stays with the first calibration (the report, the compensation).", 3)
+
+
+def planned_rows(model: RobotModel, joints) -> np.ndarray:
+    """A plan answer's `joints` (model units, actuated joints) as row values (N, n) in internal units."""
+    q = np.asarray(joints, float) * model.joint_scale()[model.actuated]
+    return model.expand_joints(q)
+
+
+def _plan_geometry(api: Api, robot_id: str, model: RobotModel, seed: int) -> np.ndarray:
+    """POST /robots/{id}/plan for N_PLAN geometric poses; tells how they compare with random ones; returns their
+    rows (internal units)."""
+    body = {"n_poses": N_PLAN, "purpose": "geometric", "seed": seed}
+    t0 = time.monotonic()
+    p = api.call("POST", f"/robots/{robot_id}/plan", json=body).json()
+    dt = time.monotonic() - t0
+    o = p["observability"]
+    g = o["geometry"]
+    dist = np.linalg.norm(o["tracker_mm"]) / 1000.0
+    loads = f", with load variety on {', '.join(o['loaded_joints'])}" if o.get("loaded_joints") else ""
+    say(f"POST /robots/{{id}}/plan {json.dumps(body)} -> {len(p['joints'])} poses in {dt:.1f} s, chosen among the "
+        f"{o['visible_candidates']} of {o['candidates']} candidate poses within the joint limits whose target faces "
+        f"the tracker (assumed {dist:.1f} m from the robot base, incidence at most {o['max_incidence_deg']:g} deg): "
+        f"D-optimal, the most information on the {g['n_parameters']} identifiable geometric parameters{loads}.", 3)
+    rows = [(f"the {N_PLAN} planned poses", g["planned"]), (f"{N_PLAN} random poses the tracker sees", g["random"])]
+    w = max(len(label) for label, _ in rows) + 2
+    for label, v in rows:
+        print(f"   {label + ':':<{w}} condition number {v['condition_number']:6.1f}, observability index O1 "
+              f"{v['observability_index']:.4f}", flush=True)
+    if g.get("information_gain_per_parameter") is not None:
+        say(f"Information per parameter: {g['information_gain_per_parameter']:.2f}x that of the random poses "
+            f"(the planned set's parameter uncertainty is {1 / np.sqrt(g['information_gain_per_parameter']):.2f}x "
+            f"the random set's, geometric mean). The twin is measured at the planned poses below.", 3)
+    return planned_rows(model, p["joints"])
 
 
 def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:

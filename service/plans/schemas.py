@@ -34,7 +34,7 @@ class PlanIn(BaseModel):
 
 class PlanOut(BaseModel):
     model_config = ConfigDict(json_schema_extra={"example": {
-        "joints": [[2572.8, 7.4, 18.3, -99.8, -35.3, 2223.7, 104.3]],
+        "joints": [[2968.5, 15.3, -21.3, -31.1, 151.6, 2255.2, 104.6]],
         "joint_names": ["J1", "J2", "J3", "J4", "J5", "J6", "J7"], "unit": {"length": "mm", "angle": "deg"},
         "targets": None, "payload_kg": None,
         "observability": {
@@ -42,13 +42,13 @@ class PlanOut(BaseModel):
                          "(weight 0.8) and of a compliance per loaded joint given the geometry (weight 0.2), each "
                          "per parameter", "loaded_joints": ["J3", "J4", "J6"],
             "geometry": {"n_parameters": 27,
-                         "planned": {"log_det": 78.4, "condition_number": 32.2, "observability_index": 0.0437,
+                         "planned": {"log_det": 81.9, "condition_number": 29.8, "observability_index": 0.0438,
                                      "rank": 27},
-                         "random": {"log_det": 63.7, "condition_number": 50.8, "observability_index": 0.0364,
+                         "random": {"log_det": 61.4, "condition_number": 61.4, "observability_index": 0.0348,
                                     "rank": 27},
-                         "information_gain_per_parameter": 1.72},
-            "purpose": "geometric", "n_poses": 50, "candidates": 20000, "visible_candidates": 4655,
-            "tracker_mm": [4173.3, -150.3, 1981.3], "max_incidence_deg": 60.0, "seed": 0}}})
+                         "information_gain_per_parameter": 2.14},
+            "purpose": "geometric", "n_poses": 50, "candidates": 20000, "visible_candidates": 4534,
+            "tracker_mm": [4055.7, 52.7, 2018.9], "max_incidence_deg": 60.0, "seed": 0}}})
     joints: list[list[float]] = Field(description="the poses, model units, in the order of `joint_names` (the "
                                       "model's actuated joints; coupled joints follow the model)")
     joint_names: list[str]
@@ -58,7 +58,8 @@ class PlanOut(BaseModel):
                                            "set measured with several payloads)")
     observability: dict[str, Any] = Field(description="the criterion used; `geometry`: what the planned poses "
                                           "(with the measured set, if any) identify against random visible poses of "
-                                          "the same number: log det of the information matrix, condition number, "
-                                          "observability index; `rivals` (diagnosis): each look-alike pair's "
-                                          "expected separation (chi-square units), by the plan and by random poses, "
-                                          "against what the diagnosis needs to tell them apart")
+                                          "the same number (drawn uniformly within the limits): log det of the "
+                                          "information matrix, condition number, observability index; `rivals` "
+                                          "(diagnosis): each look-alike pair's expected separation (chi-square "
+                                          "units), by the plan and by random poses, against what the diagnosis "
+                                          "needs to tell them apart")

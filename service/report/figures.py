@@ -114,3 +114,30 @@ def finding_title(f: dict) -> str:
     joints = ", ".join(f.get("joints") or [])
     harmonic = f" (harmonic {f['harmonic']})" if f.get("harmonic") is not None else ""
     return f"{kind} on {joints}{harmonic}" if joints else f"{kind}{harmonic}"
+
+
+LEAST_DETERMINED = 3
+"""How many geometric parameters per unit the report lists as the least well determined (largest std)."""
+
+
+def observability(answer: dict) -> dict | None:
+    """What the measured pose set observes, from the answer's `identifiability`, `metrics` and `parameters`:
+    size, rank of the identifiable set, condition number and observability index O1 (column-normalised
+    Jacobian), whether it identifies all the model's structure can, what it cannot (unidentifiable, frozen
+    joints, redundant, without effect), and per unit the LEAST_DETERMINED geometric parameters with the
+    largest std. None without an identifiability block."""
+    ident = answer.get("identifiability")
+    if not isinstance(ident, dict) or not ident:
+        return None
+    geometric = [p for p in answer.get("parameters") or [] if not p.get("effect") and num(p.get("std")) is not None]
+    least: dict[str, list[dict]] = {}
+    for p in geometric:
+        least.setdefault(str(p.get("unit") or ""), []).append(p)
+    least = {u: sorted(ps, key=lambda p: -num(p["std"]))[:LEAST_DETERMINED] for u, ps in least.items()}
+    return {"n_poses": (answer.get("metrics") or {}).get("n_poses"), "rank": ident.get("rank"),
+            "n_parameters": ident.get("n_parameters"), "condition_number": num(ident.get("condition_number")),
+            "observability_index": num(ident.get("observability_index")), "complete": ident.get("complete"),
+            "unidentifiable": list(ident.get("unidentifiable") or []),
+            "frozen_joints": list(ident.get("frozen_joints") or []),
+            "redundant": list(ident.get("redundant") or []), "nonfunctional": list(ident.get("nonfunctional") or []),
+            "least_determined": least}

@@ -12,7 +12,8 @@ from datetime import datetime, timezone
 from html import escape
 from typing import Callable
 
-from .figures import FIT_NOTE, HOLDOUT_NOTE, accuracy, finding_title, mm, model_label, num, pct, plot_list, sig, std_str
+from .figures import (FIT_NOTE, HOLDOUT_NOTE, accuracy, finding_title, mm, model_label, num, observability, pct,
+                      plot_list, sig, std_str)
 
 CSS = """
 :root { --ink: #1d2330; --mute: #5c6475; --line: #d9dde5; --geo: #e08a2c; --fin: #1f5fa8; --ok: #2b8a3e; }
@@ -133,7 +134,7 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
       f'{_e(m.get("n_poses"))} measured poses · model: <b>{_e(final_label)}</b> · '
       f'units {_e(units.get("length", "mm"))}, {_e(units.get("angle", "deg"))}; every error in mm</p>')
     w('<nav class="noprint"><a href="#accuracy">Accuracy</a><a href="#diagnosis">Diagnosis</a>'
-      '<a href="#parameters">Parameters</a><a href="#identifiability">Identifiability</a>' +
+      '<a href="#parameters">Parameters</a><a href="#identifiability">Observability</a>' +
       (f'<a href="../{_e(cid)}">JSON</a>' if png is None else "") + "</nav>")
 
     # --- in short
@@ -154,6 +155,10 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
     if acc.get("noise_floor_mm") is not None:
         w(f'<div class="card"><div class="k">noise floor (what a perfect model leaves)</div>'
           f'<div class="v">{mm(acc["noise_floor_mm"])} <small>mm RMS</small></div></div>')
+    obs = observability(answer)
+    if obs and obs["condition_number"] is not None:
+        w(f'<div class="card"><div class="k">condition number of the measured poses (O1 '
+          f'{_g3(obs["observability_index"])})</div><div class="v">{_g3(obs["condition_number"])}</div></div>')
     if d:
         causes = "; ".join(finding_title(f) for f in findings) or d.get("verdict") or "none"
         w(f'<div class="card"><div class="k">cause{"s" if len(findings) > 1 else ""} found</div>'
@@ -251,21 +256,52 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
       "Values are printed to the precision their std justifies. Base angles are absolute Z-Y-X Euler angles "
       "of the robot base in the measurement frame.</p>")
 
-    # --- identifiability
-    ident = answer.get("identifiability") or {}
-    if ident:
-        w('<h2 id="identifiability">Identifiability</h2>')
-        w(f'<p>{_e(ident.get("rank"))} of {_e(ident.get("n_parameters"))} model parameters are identifiable from '
-          f'this pose set (condition number {_g3(ident.get("condition_number"))}, observability index '
-          f'{_g3(ident.get("observability_index"))}); the others are fixed at nominal.</p>')
-        red = ident.get("redundant") or []
+    # --- observability of the measured pose set
+    if obs:
+        w('<h2 id="identifiability">Observability of the measured poses</h2>')
+        w('<table class="obs"><tbody>')
+        for label, value in (
+                ("measured poses", _e(obs["n_poses"])),
+                ("parameters identifiable from them", f'{_e(obs["rank"])} of {_e(obs["n_parameters"])}'),
+                ("condition number (column-normalised Jacobian)", _g3(obs["condition_number"])),
+                ("observability index O1", _g3(obs["observability_index"])),
+                ("identifies all the model's structure can",
+                 "—" if obs["complete"] is None else ("yes" if obs["complete"] else "<b>no</b>"))):
+            w(_row([(label, False), (value, True)]))
+        w("</tbody></table>")
+        w('<p class="note">The condition number is the ratio of the best- to the worst-observed direction of the '
+          "identifiable parameters (1 is ideal; the larger, the more one combination of them is left to the "
+          "noise). O1 (Borm &amp; Menq) is the geometric mean of the singular values divided by the square root "
+          "of the number of equations: larger is better; compare it between sets of the same size only. "
+          "<code>POST /robots/{id}/plan</code> (<code>calib plan</code>) picks poses that observe the geometry "
+          "better than random ones.</p>")
+        if obs["unidentifiable"] or obs["frozen_joints"]:
+            what = []
+            if obs["unidentifiable"]:
+                what.append(f'{len(obs["unidentifiable"])} parameter{"s" if len(obs["unidentifiable"]) > 1 else ""}'
+                            f' the model\'s structure can identify but these poses cannot: '
+                            f'{_e(", ".join(obs["unidentifiable"]))} (left at nominal)')
+            if obs["frozen_joints"]:
+                what.append(f'joints that never moved: {_e(", ".join(obs["frozen_joints"]))}')
+            w(f'<p class="explain warn"><b>Not observed.</b> {"; ".join(what)}.</p>')
+        least = obs["least_determined"]
+        if least:
+            w("<h3>Least well determined (largest standard deviation, per unit)</h3>")
+            w('<table><thead><tr><th>parameter</th><th class="n">std</th><th>unit</th></tr></thead><tbody>')
+            for unit, ps in least.items():
+                for p in ps:
+                    w(_row([(_e(p.get("name")), False), (std_str(p.get("std")), True), (_e(unit), False)]))
+            w("</tbody></table>")
+        red = obs["redundant"]
         if red:
-            w('<table><thead><tr><th>not identifiable</th><th>confounded with</th></tr></thead><tbody>')
+            w("<h3>Not identifiable: confounded with others (fixed at nominal)</h3>")
+            w('<table><thead><tr><th>parameter</th><th>confounded with</th></tr></thead><tbody>')
             for r in red:
                 w(_row([(_e(r.get("name")), False), (_e(", ".join(r.get("confounded_with") or [])), False)]))
             w("</tbody></table>")
-        if ident.get("nonfunctional"):
-            w(f'<p class="note">Without effect on the measured point: {_e(", ".join(map(str, ident["nonfunctional"])))}</p>')
+        if obs["nonfunctional"]:
+            w('<p class="note">Without effect on the measured point: '
+              f'{_e(", ".join(map(str, obs["nonfunctional"])))}</p>')
     base = answer.get("base_pose") or {}
     if base.get("position_mm"):
         w('<p class="note">Robot base in the measurement frame: ' +

@@ -10,8 +10,9 @@ from calib_core.identifiability import structural
 from calib_core.io import Measurements
 from calib_core.model import parse_model
 from calib_core.instruments import instrument
-from calib_core.plan import (MAX_INCIDENCE_DEG, REPEATABILITY_MM, TRACKER_DISTANCE_MM, default_tracker, lookalike_pairs,
-                             observability, outward, plan, visible_pool)
+from calib_core.plan import (MARGIN, MAX_INCIDENCE_DEG, REPEATABILITY_MM, TRACKER_DISTANCE_MM, _Sequential,
+                             candidate_joints, default_tracker, lookalike_pairs, observability, outward, plan,
+                             visible_pool)
 from calib_core.robots import arm6, spray7
 from calib_core.twin import Twin, sample_uniform
 
@@ -61,7 +62,7 @@ def _log_dets(model, p, n_random, seed):
     """log det of the planned set and of n_random random visible sets of its size, noise-weighted as the planner
     weights them, with the same column scale."""
     tracker = np.array(p.observability["tracker_mm"])
-    pool = visible_pool(model, FEW, np.random.default_rng(seed), tracker)
+    pool = visible_pool(model, FEW, np.random.default_rng(seed), tracker, extreme_share=0.0)  # uniform poses
     ident = structural(model).identifiable
     names = K.parameter_names(model)
     J = pool.chain.jacobian() / pool.sigma[:, None, None]
@@ -94,6 +95,57 @@ def test_load_variety_keeps_the_geometry_and_reports_the_loaded_joints():
     assert "compliance" in p.observability["criterion"]
     g = p.observability["geometry"]
     assert g["planned"]["log_det"] > g["random"]["log_det"]
+
+
+def test_limit_biased_candidates_crowd_the_joint_limits(seed):
+    """Half the candidates are drawn from the arcsine law over each joint's range: about half of their joint values
+    lie in the outer 15 % at either end of the range (kept clear of the limits by MARGIN), against 30 % for the
+    uniform half; every value stays within the range."""
+    n = 4000
+    q = candidate_joints(SPRAY, n, np.random.default_rng(seed), extreme_share=0.5)[:, SPRAY.actuated]
+    lo, hi = SPRAY.limits[SPRAY.actuated].T
+    inner_lo, inner_hi = lo + MARGIN * (hi - lo), hi - MARGIN * (hi - lo)
+    assert np.all(q >= inner_lo - 1e-9) and np.all(q <= inner_hi + 1e-9), seed
+    u = (q - inner_lo) / (inner_hi - inner_lo)
+    outer = (u < 0.15) | (u > 0.85)
+    uniform_share, biased_share = outer[: n // 2].mean(), outer[n // 2:].mean()
+    assert abs(uniform_share - 0.30) < 0.03 and abs(biased_share - 0.506) < 0.03, (uniform_share, biased_share, seed)
+    pool = visible_pool(SPRAY, n, np.random.default_rng(seed), extreme_share=0.5)
+    assert 0 < pool.uniform.sum() < len(pool.q), seed  # both kinds among the visible candidates
+
+
+def test_removing_a_pose_undoes_adding_it(seed):
+    """The exchange step's rank-three downdates: add five poses, remove two, add one, and the state equals one
+    built from scratch on the four poses left; a swap's predicted log det change equals the direct one."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(200, 3, 8))
+    M0 = 1e-2 * np.eye(8)
+    s = _Sequential(A, M0)
+    for k in (3, 7, 11, 50, 60):
+        s.add(k)
+    s.remove(7)
+    s.remove(50)
+    s.add(99)
+    kept = (3, 11, 60, 99)
+    M = M0 + sum(A[k].T @ A[k] for k in kept)
+    fresh = _Sequential(A, M)
+    assert np.allclose(s.S, fresh.S, atol=1e-8) and np.allclose(s.Minv, fresh.Minv, atol=1e-8), seed
+    swapped = M - A[11].T @ A[11] + A[20].T @ A[20]
+    direct = np.linalg.slogdet(swapped)[1] - np.linalg.slogdet(M)[1]
+    assert s.swap_gain(11)[20] == pytest.approx(direct, abs=1e-8), seed
+    assert abs(s.swap_gain(11)[11]) < 1e-8, seed  # swapping a pose for itself changes nothing
+
+
+@pytest.mark.parametrize("doc", [spray7, arm6], ids=["spray7", "arm6"])
+def test_the_exchange_step_never_loses_information(doc, seed):
+    """Same candidates, same greedy start: the set after Fedorov's exchange has at least the greedy set's log det
+    (geometry only, so the criterion is that log det)."""
+    model = parse_model(doc())
+    greedy = plan(model, 30, candidates=FEW, seed=seed % 2**31, loads=False, exchange=0)
+    exchanged = plan(model, 30, candidates=FEW, seed=seed % 2**31, loads=False)
+    a, b = greedy.observability["geometry"]["planned"], exchanged.observability["geometry"]["planned"]
+    assert b["log_det"] >= a["log_det"] - 1e-9, (a, b, seed)
+    assert len(np.unique(exchanged.joints, axis=0)) == 30, seed
 
 
 def test_a_plan_after_a_measured_set_adds_to_what_it_identifies():

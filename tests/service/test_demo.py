@@ -59,10 +59,12 @@ def validation_errors(server, cal_id, model, val) -> tuple[tuple[float, float], 
 def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
     """The common checks of a story: chapters in order, figures equal to the JSON and to the predictions."""
     story = flat(out)
-    chapters = ["1. The service", "2. The measurement campaign", "3. The calibration: POST /jobs",
-                "4. What the service found", "5. Compensation", "The report", "Explore the API"]
+    chapters = ["The service", "The measurement campaign", "The calibration: POST /jobs", "What the service found",
+                "Compensation", "The report", "Explore the API"]
     at = [story.find(c) for c in chapters]
     assert -1 not in at and at == sorted(at), list(zip(chapters, at))
+    numbered = re.findall(r"^(\d+)\. ", out, flags=re.M)
+    assert numbered == [str(k) for k in range(1, len(numbered) + 1)], numbered  # chapters numbered in order
     # the progress bar is on stderr, the story on stdout
     assert "100 %" in err and "[####" in err and "[####" not in out
     # the demo stopped the server it started
@@ -87,6 +89,11 @@ def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
                     f"{f['gain_pct']:.1f} % better") in story
             assert flat(f["evidence"]) in story
         assert f"model {' + '.join(cal['model'])}, {len(cal['parameters'])} parameters" in story
+        # what the measured poses observe: the answer's identifiability
+        ident = cal["identifiability"]
+        assert (f"The measured poses observe the geometry with condition number {ident['condition_number']:.1f} "
+                f"and observability index O1 {ident['observability_index']:.4f} ({ident['rank']} identifiable "
+                "parameters") in story
         # the validation figures: nominal (registered locally), geometric and extended (predicted over HTTP)
         model = camp.model
         before = evaluate(identify(model, camp.cal, free=("base", "tool"), folds=1), camp.val)
@@ -108,7 +115,8 @@ def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
     assert "http://127.0.0.1:8000/docs" in story
     reached = re.search(r"reaches (\d+) of (\d+ targets|them) within 0\.01 mm", story)
     assert reached and int(reached.group(1)) >= 0.95 * ext_n(story), story
-    return {"story": story, "cal": cal, "before": before, "geo": geo, "ext": ext, "ext_pred": ext_pred}
+    return {"story": story, "cal": cal, "before": before, "geo": geo, "ext": ext, "ext_pred": ext_pred,
+            "server_url": url}
 
 
 def ext_n(story: str) -> int:
@@ -116,17 +124,67 @@ def ext_n(story: str) -> int:
     return int(re.search(r"errors on the (\d+) validation poses", story).group(1))
 
 
+def uploaded_sets(db_path) -> list[tuple[str, str, np.ndarray]]:
+    """(set id, robot id, joint columns (N, n) as uploaded) of every measurement set, oldest first."""
+    with sqlite3.connect(db_path) as c:
+        rows = c.execute("SELECT id, robot_id, raw FROM measurement_sets ORDER BY created_at").fetchall()
+    out = []
+    for ms_id, robot_id, raw in rows:
+        lines = [ln for ln in raw.decode().splitlines() if ln and not ln.startswith("#")]
+        head = lines[0].split(",")
+        cols = [k for k, h in enumerate(head) if re.fullmatch(r"J\d", h)]
+        out.append((ms_id, robot_id, np.array([[float(ln.split(",")[k]) for k in cols] for ln in lines[1:]])))
+    return out
+
+
 def test_demo_tells_the_whole_story(tmp_path):
-    """The README's main command (the hidden effect drawn from the seed, as without --seed)."""
+    """The README's main command (the hidden effect drawn from the seed, as without --seed): the poses are planned
+    by the service, the twin measured there, look-alikes (if any) split by a diagnosis plan."""
+    from calib_core.plan import plan
+
     db = tmp_path / "calib.db"
     r = calib("demo", "--seed", "5", cwd=tmp_path, env=base_env(f"sqlite:///{db}"))
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
-    camp = demo.simulated(None, 5)
+    model = demo.spray7_model()[1]
+    planned = plan(model, demo.N_PLAN, seed=5)  # what POST /robots/{id}/plan answers (checked below)
+    camp = demo.simulated(None, 5, demo.planned_rows(model, planned.model_units(model).tolist()))
     hidden = camp.hidden
     assert hidden["kind"] in KINDS and hidden["cause"] in camp.twin.causes
     got = check_story(r.stdout, r.stderr, tmp_path, db, camp)
     story, d = got["story"], got["cal"]["diagnosis"]
     assert "150 poses stored" in story and "errors on the 100 validation poses" in story
+    # the plan step comes first and its figures are the plan answer's
+    assert story.find("2. Which poses to measure: POST /robots/{id}/plan") < story.find("3. The measurement campaign")
+    g = planned.observability["geometry"]
+    for label, v in (("the 50 planned poses", g["planned"]), ("50 random poses the tracker sees", g["random"])):
+        assert re.search(rf"{label}: condition number +{v['condition_number']:.1f}, observability index O1 "
+                         rf"{v['observability_index']:.4f}", story), (label, v)
+    assert g["planned"]["condition_number"] < g["random"]["condition_number"]
+    assert f"Information per parameter: {g['information_gain_per_parameter']:.2f}x" in story
+    # ... and it is used: the first uploaded set starts with the poses the service planned, then random ones
+    sets = uploaded_sets(db)
+    _, robot_id, joints = sets[0]
+    server = Server(f"sqlite:///{db}", tmp_path / "plan.log")
+    try:
+        again = server.client.post(f"/robots/{robot_id}/plan", json={"n_poses": 50, "purpose": "geometric", "seed": 5})
+        assert again.status_code == 200, again.text
+        served = np.array(again.json()["joints"])
+    finally:
+        server.stop()
+    assert joints.shape == (150, 7)
+    assert np.allclose(joints[:50], served, atol=1e-5) and np.allclose(served, planned.model_units(model), atol=1e-9)
+    assert not np.any(np.all(np.isclose(joints[50:, None], served[None], atol=1e-5), axis=2))
+    # look-alikes that a pose can split get a diagnosis plan, measured and diagnosed again
+    splittable = [(f, a) for f in d["findings"] for a in f.get("indistinguishable_from") or []
+                  if not demo._nested(f, a)]
+    if splittable:
+        assert "Telling look-alike causes apart" in story and '"purpose": "diagnosis"' in story
+        assert len(sets) == 2 and len(sets[1][2]) == 150 + demo.N_SPLIT and np.allclose(sets[1][2][:150], joints)
+        for f, a in splittable:
+            assert re.search(rf"{re.escape(demo._label(f))} vs {re.escape(demo._label(a))}: (still listed as "
+                             "look-alikes|told apart)", story), (f, a)
+    else:
+        assert "Telling look-alike causes apart" not in story and len(sets) == 1
     assert "spray-painting robot of Wang et al." in story
     # the story's arc: calibration removes the millimetres, the extended model the structure left
     assert got["before"]["rms_mm"] > 10 * got["geo"][0] > 10 * got["ext"][0]

@@ -16,7 +16,8 @@ from calib_core import Twin, parse_model, write_measurements
 from calib_core.robots import spray7
 from calib_world import World
 from calib_world.scenarios import hide
-from service.report.figures import sig
+from service.report.figures import sig, std_str
+from service.report.html import render
 
 from .conftest import wait_for
 
@@ -182,6 +183,47 @@ def test_report_renders_in_headless_chromium(server, calibrations, tmp_path):
     for p in a["parameters"]:
         assert re.search(rf"\b{re.escape(p['name'])} {re.escape(sig(p['value'], p['std']))} ", text), p
     assert "ISO 9283" in text and d["explanation"] in text
+    # the observability of the measured pose set, as the answer's identifiability reports it
+    ident = a["identifiability"]
+    assert f"measured poses {m['n_poses']} " in text
+    assert f"parameters identifiable from them {ident['rank']} of {ident['n_parameters']} " in text
+    assert f"condition number (column-normalised Jacobian) {ident['condition_number']:.3g} " in text
+    assert f"observability index O1 {ident['observability_index']:.3g} " in text
+    assert f"condition number of the measured poses (O1 {ident['observability_index']:.3g}) " \
+           f"{ident['condition_number']:.3g}" in text
+    worst = max((p for p in a["parameters"] if not p.get("effect") and p.get("std") is not None and p["unit"] == "mm"),
+                key=lambda p: p["std"])
+    assert re.search(rf"Least well determined .*? {re.escape(worst['name'])} {std_str(worst['std'])} mm ", text), worst
+    for r in ident["redundant"]:
+        assert f"{r['name']} {', '.join(r['confounded_with'])}" in text
+
+
+def test_report_shows_what_the_measured_poses_do_not_observe():
+    """A pose set that leaves parameters unidentified and a joint frozen: the report says which, and ranks the
+    least well determined parameters by their std, per unit (effects' parameters left out)."""
+    answer = {"id": "c0ffee", "model": ["geometric"], "metrics": {"n_poses": 12, "holdout_rms_mm": 0.5},
+              "parameters": [{"name": "J2.a", "value": 250.0, "std": 0.30, "unit": "mm"},
+                             {"name": "J3.a", "value": 900.0, "std": 0.05, "unit": "mm"},
+                             {"name": "J4.d", "value": 10.0, "std": 0.20, "unit": "mm"},
+                             {"name": "J5.a", "value": 0.0, "std": 0.10, "unit": "mm"},
+                             {"name": "J6.a", "value": 0.0, "std": 0.01, "unit": "mm"},
+                             {"name": "J2.theta", "value": 0.1, "std": 0.004, "unit": "deg"},
+                             {"name": "J4.compliance", "value": 1e-6, "std": 9.0, "unit": "mm",
+                              "effect": "joint_compliance"}],
+              "identifiability": {"rank": 20, "n_parameters": 44, "condition_number": 1234.5,
+                                  "observability_index": 0.00123, "complete": False,
+                                  "unidentifiable": ["J6.alpha", "J7.alpha"], "frozen_joints": ["J7"],
+                                  "redundant": [{"name": "J1.a", "confounded_with": ["base.x"]}], "nonfunctional": []}}
+    text = text_of(render(answer))
+    assert "identifies all the model's structure can no " in text
+    assert "condition number (column-normalised Jacobian) 1.23e+03 " in text
+    assert "observability index O1 0.00123 " in text
+    assert ("Not observed. 2 parameters the model's structure can identify but these poses cannot: J6.alpha, "
+            "J7.alpha (left at nominal); joints that never moved: J7.") in text
+    least = text[text.index("Least well determined"):text.index("Not identifiable")]
+    assert re.findall(r"(J\d\.\w+) [\d.]+ (mm|deg)", least) == [
+        ("J2.a", "mm"), ("J4.d", "mm"), ("J5.a", "mm"), ("J2.theta", "deg")]  # largest 3 per unit, by std
+    assert "J4.compliance" not in least and "J1.a base.x" in text
 
 
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium is not installed (.ci/run installs it)")
