@@ -18,6 +18,10 @@ metric where 1 rad weighs like 1000 mm of a prismatic joint, within the joint li
 * `locked` joints (e.g. the telescopic J6, as in Wang et al. 2023, section 6) stay at their seed; the
   others solve the position (3 constraints).
 * A step that would leave the limits is clamped and that joint stays at its limit from then on (active set).
+  A coupled joint's own limits bound a linear combination of the actuated joints (its row of the coupling
+  matrix): a step that would take it past them is shortened to the limit, and from then on every step keeps
+  it there (the step is projected onto that constraint's null space, like a clamped joint's column removed).
+  A seed that puts a coupled joint outside its limits is first moved inside them (alternating projections).
 * A target not within `tol_mm` after `max_iter` iterations is reported (`reachable` False, `reason`),
   never raised: one bad target does not fail the batch.
 
@@ -25,12 +29,13 @@ Everything is vectorised over targets: one batched 3x3 solve per iteration for a
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
 from . import kinematics as K
+from .effects.base import unloaded
 from .identify import CalibratedRobot
 from .io import Measurements
 from .model import RobotModel
@@ -56,12 +61,13 @@ class Compensation:
     reachable: np.ndarray  # (N,) bool: residual within tolerance
     reason: list[str | None]  # None where reachable, else why not
     iterations: np.ndarray  # (N,) iterations used per target
+    notes: list[str] = field(default_factory=list)  # what the answer could not take into account (missing loads)
 
     def to_dict(self, model: RobotModel) -> dict:
-        """The contract answer (joints in the model's units, NaN-free) plus the per-target status."""
+        """The contract answer (joints in the model's units, NaN-free), the per-target status and the notes."""
         return {"joints": (self.joints / model.joint_scale()[model.actuated]).tolist(),
                 "residual_mm": [float(r) if np.isfinite(r) else None for r in self.residual_mm],
-                "reachable": self.reachable.tolist(), "reason": list(self.reason)}
+                "reachable": self.reachable.tolist(), "reason": list(self.reason), "notes": list(self.notes)}
 
 
 def compensate(
@@ -81,8 +87,9 @@ def compensate(
     their coupling at every iterate (a coupling is never broken) and fixed rows stay fixed. locked: actuated
     joint indices or names that stay at their seed value (redundancy resolution by locking); with none, the
     redundant joints follow the damped least-squares null-space pull toward the seed. columns: which model
-    target each row is (`target`), its setup, and payload / temperature / timestamp for the effects that need
-    them (its joints are ignored).
+    target each row is (`target`), its setup, and payload / temperature / timestamp / tau (measured joint
+    torques N*m or N: the load of load-driven causes, NaN: the model's statics) for the effects that need them
+    (its joints are ignored).
     Raises ValueError only for malformed input arrays; per-target failures are reported in the answer.
     """
     model = robot.model
@@ -100,6 +107,7 @@ def compensate(
     lo, hi = model.limits[act, 0], model.limits[act, 1]
     scale = np.where(model.prismatic[act], 1.0 / RAD_PER_MM, 1.0)
     names = model.actuated_names
+    cc = _CoupledLimits(model, scale)
 
     reason: list[str | None] = [None] * N
     ok = np.isfinite(T).all(1) & np.isfinite(seed).all(1)
@@ -112,11 +120,18 @@ def compensate(
             held = ", ".join(names[lock[k]] for k in np.flatnonzero(out[i]))
             reason[i] = f"locked joint(s) {held}: seed outside the joint limits"
         ok &= ~out.any(1)
+    if cc.k:
+        q, bad = cc.make_feasible(q, lo, hi, lock)
+        for i in np.flatnonzero(ok & bad):
+            reason[i] = f"not reachable: {cc.describe_violation(q[i])}" + (
+                f" (with {', '.join(names[j] for j in lock)} locked at the seed)" if lock else "")
+        ok &= ~bad
     ref = q.copy()  # the seed within the limits: what the null-space pull leads back to
 
     fixed = np.zeros((N, n), bool)
     fixed[:, lock] = True
     at_limit = np.zeros((N, n), bool)
+    c_active = np.zeros((N, cc.k), bool)  # coupled joints held at a limit (active constraints)
     residual = np.full(N, np.nan)
     iterations = np.zeros(N, int)
     gain = np.ones(N)  # null-space pull gain, halved for a target whose residual stops shrinking
@@ -142,16 +157,31 @@ def compensate(
             break
         idx, e, J = idx[moving], e[moving], J[moving]
         free = ~fixed[idx]
-        Jz = J * scale * free[:, None, :]  # (m, 3, n) in scaled joints, fixed joints removed
         slow = r[moving] > PULL_BACKOFF * prev[idx]
         gain[idx[slow]] *= 0.5
         prev[idx] = r[moving]
         pull = gain[idx, None] * (ref[idx] - q[idx]) / scale * free
+        if cc.k and c_active[idx].any():  # fixed joints and coupled joints at a limit removed from the step
+            P = cc.projector(free, c_active[idx])
+            Jz = np.einsum("mjk,mki->mji", J * scale, P)
+            pull = np.einsum("mik,mk->mi", P, pull)
+        else:
+            Jz = J * scale * free[:, None, :]  # (m, 3, n) in scaled joints, fixed joints removed
         dz = pull + np.einsum("mji,mj->mi", Jz, _solve_3x3(Jz, e, np.einsum("mij,mj->mi", Jz, pull)))
         norm = np.sqrt((dz**2).sum(1))
         dz *= np.minimum(1.0, MAX_STEP / np.maximum(norm, 1e-300))[:, None]
         qn = q[idx] + dz * scale
         hit = (qn < lo) | (qn > hi)
+        if cc.k:  # line search: the step ends at the first limit it meets (a joint's or a coupled joint's)
+            q0 = q[idx]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_box = np.where(qn > hi, (hi - q0) / (qn - q0), np.where(qn < lo, (lo - q0) / (qn - q0), np.inf))
+            t_box = np.clip(t_box, 0.0, None)
+            t_c = cc.crossing(q0, qn)
+            t = np.minimum(1.0, np.minimum(t_box.min(1), t_c.min(1, initial=np.inf)))
+            hit &= t_box <= t[:, None] + 1e-12  # these joints reach their limit and stay there
+            c_active[idx] |= t_c <= t[:, None] + 1e-12  # these coupled joints reach theirs
+            qn = q0 + t[:, None] * (qn - q0)
         q[idx] = np.clip(qn, lo, hi)
         fixed[idx] |= hit
         at_limit[idx] |= hit
@@ -161,6 +191,8 @@ def compensate(
     q[miss], residual[miss] = best_q[miss], best_r[miss]
     for i in miss:
         stuck = [names[j] for j in np.flatnonzero(at_limit[i] & ((q[i] <= lo) | (q[i] >= hi)))]
+        if cc.k:
+            stuck += cc.at_limit_names(q[i], c_active[i])
         if stuck:
             where = f"needs {', '.join(stuck)} beyond {'its limit' if len(stuck) == 1 else 'their limits'}"
         elif residual[i] < 0.9 * prev[i]:
@@ -170,7 +202,9 @@ def compensate(
         if lock:
             where += f"; with {', '.join(names[j] for j in lock)} locked"
         reason[i] = f"not reachable: {residual[i]:.3f} mm left after {iterations[i]} iterations ({where})"
-    return Compensation(joints=q, residual_mm=residual, reachable=reachable, reason=reason, iterations=iterations)
+    notes = unloaded(model, robot.effects, _rows(columns, np.arange(N), model.expand_joints(q)))
+    return Compensation(joints=q, residual_mm=residual, reachable=reachable, reason=reason, iterations=iterations,
+                        notes=notes)
 
 
 def nominal_to_calibrated(
@@ -220,6 +254,103 @@ def nominal_targets(robot: CalibratedRobot, nominal_model: RobotModel, program_j
     return out
 
 
+class _CoupledLimits:
+    """The limits of the coupled joints as linear inequalities on the actuated joints: lo <= G q + off <= hi,
+    G the coupled rows of the coupling matrix (internal units, rad / mm); only coupled joints with a finite limit."""
+
+    TOL = 1e-9
+    """rad / mm: how far past its limit a coupled joint may be from rounding alone."""
+
+    def __init__(self, model: RobotModel, scale: np.ndarray):
+        A = model.coupling_matrix()
+        off = model.expand_joints(np.zeros((1, len(model.actuated))))[0]
+        self.rows = [row for row, _, _ in model.coupling if np.isfinite(model.limits[row]).any()]
+        self.k = len(self.rows)
+        self.G = A[self.rows]  # (k, n_act)
+        self.scale = scale
+        self.Gz = self.G * scale  # d(coupled value) / d(scaled joints)
+        self.off = off[self.rows]
+        self.lo, self.hi = model.limits[self.rows, 0], model.limits[self.rows, 1]
+        self.model = model
+
+    def value(self, q: np.ndarray) -> np.ndarray:
+        """Coupled joint values (N, k), rad / mm, at actuated joints q (N, n_act)."""
+        return q @ self.G.T + self.off
+
+    def make_feasible(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, lock: list[int], sweeps: int = 200
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """q moved into the coupled limits (and kept in the box, locked joints unchanged) by alternating
+        projections in the scaled metric; also a bool (N,) of rows for which no such command was found."""
+        q = q.copy()
+        movable = np.ones(q.shape[1], bool)
+        movable[lock] = False
+        Gz = self.Gz * movable
+        dq_per = Gz * self.scale  # the scaled step along Gz, back in rad / mm
+        for _ in range(sweeps):
+            v = self.value(q)
+            if not ((v < self.lo - self.TOL) | (v > self.hi + self.TOL)).any():
+                break
+            for c in range(self.k):
+                g2 = float(Gz[c] @ Gz[c])
+                if g2 > 0.0:
+                    vc = self.value(q)[:, c]
+                    q = np.clip(q + np.outer((np.clip(vc, self.lo[c], self.hi[c]) - vc) / g2, dq_per[c]), lo, hi)
+        v = self.value(q)
+        return q, ((v < self.lo - self.TOL) | (v > self.hi + self.TOL)).any(1)
+
+    def projector(self, free: np.ndarray, active: np.ndarray) -> np.ndarray:
+        """(m, n, n): the orthogonal projector (scaled joints) onto the steps that move no fixed joint and no
+        coupled joint held at a limit: P = D - Ga^T (Ga Ga^T)^+ Ga, D = diag(free), Ga the active rows of G D."""
+        D = free.astype(float)
+        Ga = self.Gz[None] * D[:, None, :] * active[:, :, None]  # (m, k, n), inactive rows zero
+        M = np.linalg.pinv(Ga @ np.swapaxes(Ga, 1, 2), rcond=1e-10, hermitian=True)
+        return D[:, :, None] * np.eye(len(free[0]))[None] - np.swapaxes(Ga, 1, 2) @ M @ Ga
+
+    def crossing(self, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+        """(m, k): the share of the step q0 -> q1 at which each coupled joint reaches the limit it would cross
+        (q0 within them), inf where it stays within them."""
+        v0, v1 = self.value(q0), self.value(q1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(v1 > self.hi + self.TOL, (self.hi - v0) / (v1 - v0),
+                         np.where(v1 < self.lo - self.TOL, (self.lo - v0) / (v1 - v0), np.inf))
+        return np.clip(t, 0.0, None)
+
+    def _formula(self, c: int) -> str:
+        """'T4 = -T2 - T3' (its coupling in model units) from the coupling matrix."""
+        m, row = self.model, self.rows[c]
+        js = m.joint_scale()
+        text = ""
+        for g, a in zip(self.G[c], m.actuated):
+            if g != 0:
+                k = abs(g) * js[a] / js[row]
+                term = f"{'' if np.isclose(k, 1.0) else f'{k:g}*'}{m.joint_names[a]}"
+                text += (f"{'-' if g < 0 else ''}{term}" if not text else f" {'-' if g < 0 else '+'} {term}")
+        off = self.off[c] / js[row]
+        if off:
+            text += f" {'-' if off < 0 else '+'} {abs(off):g}" if text else f"{off:g}"
+        return f"{m.joint_names[row]} = {text or '0'}"
+
+    def _limits_text(self, c: int) -> str:
+        m, row = self.model, self.rows[c]
+        js = m.joint_scale()[row]
+        return f"[{self.lo[c] / js:g}, {self.hi[c] / js:g}] {m.joint_unit(row)}"
+
+    def at_limit_names(self, q: np.ndarray, active: np.ndarray) -> list[str]:
+        """Coupled joints held at a limit at q (n_act,), named with their coupling."""
+        v = self.value(q[None])[0]
+        at = active & ((v <= self.lo + 1e-6) | (v >= self.hi - 1e-6))
+        return [f"the coupled {self._formula(c)}" for c in np.flatnonzero(at)]
+
+    def describe_violation(self, q: np.ndarray) -> str:
+        """Why no command keeps the coupled joints within their limits, for one row's q (n_act,)."""
+        m = self.model
+        v = self.value(q[None])[0]
+        bad = np.flatnonzero((v < self.lo - self.TOL) | (v > self.hi + self.TOL))
+        return "; ".join(f"the coupled {self._formula(c)} stays outside its limits {self._limits_text(c)} "
+                         f"(at best {v[c] / m.joint_scale()[self.rows[c]]:g}) for every command within the "
+                         "actuated joints' limits" for c in bad)
+
+
 def _joint_indices(model: RobotModel, joints: Sequence[int | str]) -> list[int]:
     """Indices into the actuated joints of names or indices (coupled and fixed rows cannot be locked)."""
     names, out = model.actuated_names, []
@@ -237,13 +368,15 @@ def _joint_indices(model: RobotModel, joints: Sequence[int | str]) -> list[int]:
 
 
 def _rows(columns: Measurements | None, idx: np.ndarray, q: np.ndarray) -> Measurements:
-    """The measurement columns of these targets, with the current joints (effects read meas.joints)."""
+    """The measurement columns of these targets, with the current joints (effects read meas.joints) and the
+    measured torques tau (N*m or N, the load of load-driven causes where given)."""
     pick = lambda a: None if a is None else a[idx]  # noqa: E731
     if columns is None:
         return Measurements(joints=q, points=np.zeros((len(q), 3)))
     return Measurements(joints=q, points=np.zeros((len(q), 3)), timestamp=pick(columns.timestamp),
                         temperature=pick(columns.temperature), payload=pick(columns.payload),
-                        target=pick(columns.target), setup=pick(columns.setup), setup_names=columns.setup_names)
+                        target=pick(columns.target), setup=pick(columns.setup), setup_names=columns.setup_names,
+                        tau=pick(columns.tau))
 
 
 def _solve_3x3(Jz: np.ndarray, e: np.ndarray, Jpull: np.ndarray) -> np.ndarray:

@@ -64,10 +64,7 @@ def with_orientation(model: RobotModel, meas: Measurements, lever_mm: float = LE
     for t in np.unique(target[rows]):
         mine = target[rows] == t
         i = rows[mine]
-        # chordal mean of R_end^T Rbase^T R_meas over the rows: the marker frame in the target's row frame
-        M = np.einsum("nba,nbc->nac", ch.R_end[i], np.einsum("nba,nbc->nac", Rbase[setup[i]], Rm[mine])).sum(0)
-        U, _, Vt = np.linalg.svd(M)
-        R_off = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        R_off, _ = _offset(ch.R_end[i], Rbase[setup[i]], Rm[mine])
         name, row, xyz = targets[t]
         for k, axis in enumerate(AXES):
             add_target.append(np.full(len(i), len(targets)))
@@ -88,6 +85,37 @@ def with_orientation(model: RobotModel, meas: Measurements, lever_mm: float = LE
                        target=np.r_[target, np.concatenate(add_target)], setup=pick(meas.setup),
                        setup_names=meas.setup_names, orientation=None, tau=pick(meas.tau))
     return virtual, out
+
+
+def _offset(R_end: np.ndarray, Rbase: np.ndarray, Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The marker frame in the target's row frame, the chordal mean of R_end^T Rbase^T R_meas over the rows
+    (3, 3), and each row's angle (deg) from it."""
+    each = np.einsum("nba,nbc->nac", R_end, np.einsum("nba,nbc->nac", Rbase, Rm))
+    U, _, Vt = np.linalg.svd(each.sum(0))
+    R_off = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    cos = (np.einsum("ab,nab->n", R_off, each) - 1.0) / 2.0
+    return R_off, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def offset_spread_deg(model: RobotModel, meas: Measurements) -> dict[str, np.ndarray]:
+    """Per target with 6-D rows: each row's angle (deg) between its measured marker rotation and the one
+    constant marker-in-flange rotation the virtual points assume (nominal geometry, rigidly fitted base).
+    Beyond the orientation noise and the model's own angular errors (tenths of a degree) it says the marker
+    was not rigidly the target's: e.g. mounted anew between sessions, which needs a target per mounting."""
+    if meas.orientation is None or np.isnan(meas.orientation[:, 0]).all():
+        return {}
+    rows = np.flatnonzero(~np.isnan(meas.orientation[:, 0]))
+    target = np.zeros(meas.n_poses, int) if meas.target is None else meas.target
+    setup = np.zeros(meas.n_poses, int) if meas.setup is None else meas.setup
+    ch = K.Chain(model, K.nominal_vector(model, n_setups=meas.n_setups), meas.joints,
+                 np.broadcast_to(np.eye(3), (meas.n_setups, 3, 3)) if meas.n_setups > 1 else None, meas.labels)
+    Rbase = np.stack([K.rigid_fit(ch.p[setup == s], meas.points[setup == s])[0] for s in range(meas.n_setups)])
+    Rm = quaternion_matrix(meas.orientation[rows])
+    out = {}
+    for t in np.unique(target[rows]):
+        mine = target[rows] == t
+        out[model.target_names[t]] = _offset(ch.R_end[rows[mine]], Rbase[setup[rows[mine]]], Rm[mine])[1]
+    return out
 
 
 def without_virtual(model: RobotModel, x: np.ndarray) -> np.ndarray:

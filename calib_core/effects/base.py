@@ -50,6 +50,26 @@ def loads(chain: Chain, meas: Measurements) -> np.ndarray:
     return out
 
 
+def unloaded(model: RobotModel, effects, meas: Measurements) -> list[str]:
+    """Sentences naming each identified cause that reads a joint's load (N*m or N) where the model has no masses
+    and a row gives no tau_<joint>: there it acts as zero load (predict / compensate say so, never silently)."""
+    if model.has_mass:
+        return []
+    out = []
+    for e in effects:
+        if e.needs != "mass" or getattr(e, "load_coef", ()) or getattr(e, "masses", ()):
+            continue  # a cause that needs no load, or carries its own (identified load or masses)
+        for j in e.joints:
+            rows = np.arange(meas.n_poses) if meas.tau is None else np.flatnonzero(np.isnan(meas.tau[:, j]))
+            if rows.size:
+                name = model.joint_names[j]
+                which = "every row" if rows.size == meas.n_poses else \
+                    f"row{'s' * (rows.size > 1)} {', '.join(map(str, rows[:10]))}{' ...' if rows.size > 10 else ''}"
+                out.append(f"{e.label(model)} needs the load on {name}: the model has no masses and {which} gave no "
+                           f"tau_{name}, so there it acts as zero load; give tau_{name} (N*m or N, as in the CSV)")
+    return out
+
+
 @dataclass(frozen=True)
 class Basis:
     joint: np.ndarray | None  # (N, n, k) joint offset per unit parameter (rad or mm)

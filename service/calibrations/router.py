@@ -75,11 +75,12 @@ def predict(calibration_id: str, body: PredictIn = Body(..., openapi_examples={"
         "summary": "one pose of spray7 (mm, deg)",
         "value": {"joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}}}),
         s: Session = Depends(get_read_session, scope="function")) -> PredictOut:
-    """Joints in the model's units and joint order; positions in the measurement (tracker) frame, model length unit."""
+    """Joints in the model's units and joint order; positions in the measurement (tracker) frame, model length unit.
+    Optional `tau` (measured joint torques, `tau_<joint>` as in the CSV) is the load of load-driven causes."""
     c = service.get_calibration(s, calibration_id)
-    positions, unit = service.predict(s, c, body.joints, body.payload, body.temperature, body.timestamp,
-                                      body.target, body.setup)
-    return PredictOut(positions=positions, unit=unit)
+    positions, unit, notes = service.predict(s, c, body.joints, body.payload, body.temperature, body.timestamp,
+                                             body.target, body.setup, body.tau)
+    return PredictOut(positions=positions, unit=unit, notes=notes)
 
 
 @router.post("/calibrations/{calibration_id}/compensate", response_model=CompensateOut,

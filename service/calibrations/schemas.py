@@ -15,6 +15,14 @@ Row = Annotated[list[Finite], Field(max_length=MAX_ROW)]
 PerPose = Annotated[list[Finite], Field(max_length=MAX_POSES)]
 Label = Annotated[str, Field(max_length=200)]
 """A target or setup name of the model / the measurement set."""
+TauValues = Finite | Annotated[list[Finite | None], Field(max_length=MAX_POSES)]
+TAU_DESCRIPTION = ("measured joint torques, keyed by the CSV's column names `tau_<joint>`: N*m (N for a prismatic "
+                   "joint), one value or one per row (null: that row uses the model's statics). The load of "
+                   "load-driven causes (joint compliance, backlash), as in the CSV: what the joint applies to hold "
+                   "the arm, so the gravity load is -tau. Without it the model's statics are used; a model without "
+                   "masses then has no load, and the answer's `notes` say which cause acts as zero")
+NOTES_DESCRIPTION = ("what the answer could not take into account, in words (e.g. a load-driven cause without a "
+                     "load: no masses in the model and no tau given)")
 
 
 class PlotRef(BaseModel):
@@ -74,6 +82,8 @@ class PredictIn(BaseModel):
                                                       "(absent: the calibration's mean temperature)")
     timestamp: str | list[str] | None = Field(None, description="ISO 8601, one or one per pose; used only by a "
                                               "calibration that identified a drift over time", max_length=MAX_POSES)
+    tau: dict[Label, TauValues] | None = Field(None, max_length=MAX_ROW, description=TAU_DESCRIPTION,
+                                               examples=[{"tau_J2": [412.5], "tau_J3": -88.0}])
 
 
 class PredictOut(BaseModel):
@@ -81,6 +91,7 @@ class PredictOut(BaseModel):
                                                              "unit": "mm"}})
     positions: list[list[float]] = Field(description="measured point in the measurement frame, model length unit")
     unit: str
+    notes: list[str] = Field(default_factory=list, description=NOTES_DESCRIPTION)
 
 
 class CompensateIn(BaseModel):
@@ -103,6 +114,8 @@ class CompensateIn(BaseModel):
                                                            "or one per row; default the first target)")
     setup: Label | None = Field(None, description="the setup whose measurement frame the targets are in "
                                                   "(default the first setup of the calibration)")
+    tau: dict[Label, TauValues] | None = Field(None, max_length=MAX_ROW, description=TAU_DESCRIPTION + "; one "
+                                               "per target or program row", examples=[{"tau_J2": [412.5]}])
 
 
 class CompensateOut(BaseModel):
@@ -115,3 +128,4 @@ class CompensateOut(BaseModel):
     reachable: list[bool]
     reason: list[str | None] = Field(description="why a target could not be reached (None where it was)")
     unit: dict[str, str]
+    notes: list[str] = Field(default_factory=list, description=NOTES_DESCRIPTION)

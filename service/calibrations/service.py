@@ -9,8 +9,9 @@ from sqlalchemy.orm import Session, object_session
 
 from calib_core.compensate import compensate as solve_compensation
 from calib_core.compensate import nominal_to_calibrated
+from calib_core.effects.base import unloaded
 from calib_core.identify import CalibratedRobot
-from calib_core.io import Measurements
+from calib_core.io import MAX_TAU, Measurements
 from calib_core.model import (ANGLE_TO_RAD, JOINT_MARGIN_FRACTION, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM,
                                MAX_REVOLUTE_DEG, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC)
 
@@ -206,8 +207,37 @@ def _labels(model, state: dict, target, setup, n_rows: int, errors: list) -> tup
     return tix, six
 
 
+def _tau(model, tau: dict | None, n_rows: int, errors: list) -> tuple[np.ndarray | None, int]:
+    """Measured joint torques (n_rows, n) N*m or N from `tau_<joint>` keys (one value or one per row, None: the
+    model's statics), NaN where not given; errors name body.tau.<key>[row] and the value. Also returns how
+    many more errors there are than listed."""
+    if not tau:
+        return None, 0
+    cols = {f"tau_{model.joint_names[j]}": int(j) for j in np.flatnonzero(model.moving)}
+    out = np.full((n_rows, model.n_joints), np.nan)
+    found = []
+    for key, v in tau.items():
+        if key not in cols:
+            errors.append({"field": f"body.tau.{key}", "value": key, "message": "unknown joint torque: one of "
+                           f"{', '.join(cols)} (tau_<joint> of a joint with a joint value)"})
+            continue
+        if isinstance(v, list) and len(v) != n_rows:
+            errors.append({"field": f"body.tau.{key}", "value": len(v),
+                           "message": f"one value per row ({n_rows}), or one value"})
+            continue
+        vals = v if isinstance(v, list) else [v] * n_rows
+        found += [{"field": f"body.tau.{key}" + (f"[{i}]" if isinstance(v, list) else ""), "value": x,
+                   "message": f"implausible joint load: at most {MAX_TAU:g} N*m (or N) in magnitude"}
+                  for i, x in enumerate(vals) if x is not None and not abs(x) <= MAX_TAU]
+        out[:, cols[key]] = [np.nan if x is None else float(x) for x in vals]
+    errors += found[:MAX_ERRORS]
+    return out, max(0, len(found) - MAX_ERRORS)
+
+
 def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temperature=None,
-            timestamp=None, target=None, setup=None) -> tuple[list[list[float]], str]:
+            timestamp=None, target=None, setup=None, tau=None) -> tuple[list[list[float]], str, list[str]]:
+    """Positions (model length unit) of the calibrated robot at actuated joints (model units), and notes on what
+    they could not take into account (a load-driven cause without a load). tau: `tau_<joint>` -> N*m or N."""
     model = model_of(s.get(Robot, c.robot_id))
     n = len(model.actuated)
     errors = [{"field": f"body.joints[{i}]", "value": len(row), "message": f"expected {n} joint values "
@@ -220,14 +250,16 @@ def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temp
     more = _joint_range_problems(model, joints, "joints", errors)
     more += _range_problems("payload", payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
     more += _range_problems("temperature", temperature, *TEMPERATURE_RANGE_C, "deg C", errors)
-    _reject("the joints do not fit the robot model", errors, more)
+    torques, hidden = _tau(model, tau, len(joints), errors)
+    _reject("the joints do not fit the robot model", errors, more + hidden)
     q = model.expand_joints(np.asarray(joints, float) * model.joint_scale()[model.actuated])
     robot = CalibratedRobot.from_state(model, c.robot_state)
     load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (len(q),)).copy()
-    p_mm = robot.predict(q, Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load, temperature=temp,
-                                         timestamp=stamps, target=tix, setup=six,
-                                         setup_names=robot.setup_names))
-    return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit
+    columns = Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load, temperature=temp,
+                           timestamp=stamps, target=tix, setup=six, setup_names=robot.setup_names, tau=torques)
+    p_mm = robot.predict(q, columns)
+    notes = unloaded(model, robot.effects, columns)
+    return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit, notes
 
 
 def compensate(s: Session, c: Calibration, body) -> dict:
@@ -259,12 +291,13 @@ def compensate(s: Session, c: Calibration, body) -> dict:
     if not program:
         more += _point_problems(body.targets, model.length_unit, errors)
     more += _range_problems("payload", body.payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
-    _reject("the request does not fit the robot model", errors, more)
+    torques, hidden = _tau(model, body.tau, len(rows or []), errors)
+    _reject("the request does not fit the robot model", errors, more + hidden)
     q = np.asarray(rows, float).reshape(-1, n) * model.joint_scale()[model.actuated]
     robot = CalibratedRobot.from_state(model, c.robot_state)
     columns = Measurements(joints=model.expand_joints(q), points=np.zeros((len(q), 3)),
                            payload=None if body.payload is None else np.full(len(q), body.payload),
-                           target=tix, setup=six, setup_names=robot.setup_names)
+                           target=tix, setup=six, setup_names=robot.setup_names, tau=torques)
     locked = tuple(body.locked_joints)
     if program:
         result = nominal_to_calibrated(robot, None, q, locked=locked, columns=columns)

@@ -243,3 +243,81 @@ def test_bad_input():
     assert _within_limits(SPRAY, c.joints)
     c = compensate(robot, targets, q, max_iter=1)
     assert not c.reachable.any() and all("raise max_iter" in r for r in c.reason), c.reason
+
+
+# --- a coupled joint's own limits (tree robot: T4 = -T2 - T3) ------------------------------------------------
+
+def _coupled_tree(t4_limits=(-30.0, 30.0)):
+    """The torso-and-two-arms tree of test_tree with limits on its coupled T4 (deg), and its nominal robot."""
+    from calib_core import kinematics as K
+    from calib_core.identify import CalibratedRobot
+    from tests.core.test_tree import torso_two_arms
+
+    doc = torso_two_arms()
+    if t4_limits is not None:
+        doc["joints"][3]["limits"] = list(t4_limits)
+    model = parse_model(doc)
+    return model, CalibratedRobot(model, K.nominal_vector(model), np.eye(3))
+
+
+def _t4_deg(model, q_act):
+    return np.degrees(model.expand_joints(q_act)[:, 3])
+
+
+def test_a_coupled_joint_stays_within_its_own_limits(seed):
+    """Targets the nominal tree reaches with the coupled T4 at 35-50 deg, seeds near those joints: without T4's
+    limits the answer keeps T4 there; with T4 limited to [-30, 30] deg the answer lands on every target with T4
+    within them (at its limit where the seed was past it), the other joints taking over."""
+    from calib_core.io import Measurements
+
+    model, robot = _coupled_tree()
+    free_model, free_robot = _coupled_tree(None)
+    rng = np.random.default_rng(seed)
+    n = 40
+    want = sample_uniform(model, n, rng, margin=0.15)[:, model.actuated]
+    want[:, 1] = np.radians(rng.uniform(-20, 20, n))
+    sign = np.where(rng.random(n) < 0.5, 1.0, -1.0)
+    want[:, 2] = -want[:, 1] - sign * np.radians(rng.uniform(35, 50, n))  # T4 = -T2 - T3 = +-35..50 deg
+    rows = model.expand_joints(want)
+    cols = Measurements(joints=rows, points=np.zeros((n, 3)), target=rng.integers(0, 2, n))
+    targets = robot.predict(rows, cols)
+    seeds = want + rng.normal(0.0, 0.01, want.shape)
+    assert (np.abs(_t4_deg(model, seeds)) > 32).all(), seed
+
+    loose = compensate(free_robot, targets, seeds, columns=cols)
+    assert loose.reachable.all() and (np.abs(_t4_deg(free_model, loose.joints)) > 30.5).all(), seed
+
+    out = compensate(robot, targets, seeds, columns=cols)
+    assert out.reachable.all(), (seed, [r for r in out.reason if r])
+    t4 = _t4_deg(model, out.joints)
+    assert (np.abs(t4) <= 30 + 1e-6).all() and np.isclose(np.abs(t4), 30.0, atol=1e-6).mean() > 0.5, (seed, t4)
+    assert (out.residual_mm <= 1e-3).all()
+    rows = model.expand_joints(out.joints)
+    assert ((rows >= model.limits[:, 0] - 1e-12) & (rows <= model.limits[:, 1] + 1e-12)).all()
+    got = np.linalg.norm(robot.predict(model.expand_joints(out.joints), cols) - targets, axis=1)
+    assert np.allclose(got, out.residual_mm, atol=1e-12)
+
+
+def test_a_target_needing_the_coupled_joint_past_its_limit_names_it(seed):
+    """The arm locked and only the torso free: a target that needs T4 at -45 deg cannot be reached within
+    T4's [-30, 30]; the reason names T4 and its coupling, and T4 stays inside its limits."""
+    from calib_core.io import Measurements
+
+    model, robot = _coupled_tree()
+    rng = np.random.default_rng(seed)
+    n = 6
+    q = sample_uniform(model, n, rng, margin=0.2)[:, model.actuated]
+    q[:, 1] = np.radians(rng.uniform(10, 30, n))
+    q[:, 2] = np.radians(45.0) - q[:, 1]  # T4 = -45 deg
+    cols = Measurements(joints=model.expand_joints(q), points=np.zeros((n, 3)), target=np.ones(n, int))
+    targets = robot.predict(model.expand_joints(q), cols)
+    seeds = q.copy()
+    seeds[:, 2] += np.radians(20.0)  # start with T4 at -65 deg: moved inside first
+    arm = ("T1", "R1", "R2", "R3", "R4")
+    out = compensate(robot, targets, seeds, locked=arm, columns=cols)
+    assert not out.reachable.any(), (seed, out.residual_mm)
+    assert all("T4" in r and "T2" in r and "limit" in r for r in out.reason), out.reason
+    assert (np.abs(_t4_deg(model, out.joints)) <= 30 + 1e-6).all()
+    # T2 and T3 locked at a seed whose T4 is outside [-30, 30]: no command helps, and the reason says why
+    out = compensate(robot, targets, seeds, locked=(*arm, "T2", "T3"), columns=cols)
+    assert not out.reachable.any() and all("outside its limits [-30, 30] deg" in r for r in out.reason), out.reason

@@ -40,7 +40,7 @@ needs_justin = pytest.mark.skipif(not justin_available(), reason="../shared/data
 def parse_csv(text: str) -> tuple[list[str], dict[str, np.ndarray], list[str]]:
     rows = [r for r in csv.reader(io.StringIO(text)) if r and not r[0].startswith(("#", "//"))]
     header, body = rows[0], rows[1:]
-    cols = {h: np.array([float(r[i]) for r in body]) for i, h in enumerate(header) if h != "point"}
+    cols = {h: np.array([float(r[i]) for r in body]) for i, h in enumerate(header) if h not in ("point", "target")}
     return header, cols, [r[0] for r in body]
 
 
@@ -149,6 +149,13 @@ def test_iiwa_all_runs():
     assert len(points) == 792 and len(set(points)) == 792
     assert sorted(set(cols["payload"])) == [0.0, 1.25, 2.5, 5.0]
     assert all(np.sum(cols["payload"] == p) == 198 for p in (0.0, 1.25, 2.5, 5.0))
+    # one marker target per run (mounted anew for each payload), named like the run in the point ids
+    header, _, _ = parse_csv(ds.csv_text)
+    k = header.index("target")
+    rows = [r for r in csv.reader(io.StringIO(ds.csv_text))][1:]
+    assert all(r[0].split("-")[0] == r[k] for r in rows)
+    assert [t["name"] for t in ds.model["targets"]] == ["run1", "run2", "run3", "run4"]
+    assert "tool" not in ds.model and ds.model["convention"] == "mdh"
 
 
 @needs_shared
