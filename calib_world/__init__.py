@@ -10,7 +10,7 @@ nominal model (calib_core.model) and returns the contract's Measurements (calib_
     meas = world.measure(info["q"])                            # Measurements; truth in world.last.truth
 """
 from .campaign import Campaign, Truth, World, sample_joints
-from .mechanics import (BaseTilt, CableForce, Cantilever, Cause, EncoderScale, GearError, GearPlay,
+from .mechanics import (BaseTilt, CableForce, Cantilever, Cause, ElasticBearings, EncoderScale, GearError, GearPlay,
                         GrossOutliers, JointSpring, RailStraightness, ReHoming, ThermalGrowth)
 from .robot import PhysicalRobot, Pose
 from .scenarios import EXPECTED, KINDS, hide, null_world
@@ -18,5 +18,5 @@ from .scenarios import EXPECTED, KINDS, hide, null_world
 __all__ = [
     "World", "Campaign", "Truth", "sample_joints", "PhysicalRobot", "Pose", "hide", "null_world", "EXPECTED",
     "KINDS", "Cause", "JointSpring", "GearPlay", "GearError", "EncoderScale", "RailStraightness", "Cantilever",
-    "BaseTilt", "ReHoming", "ThermalGrowth", "CableForce", "GrossOutliers",
+    "BaseTilt", "ElasticBearings", "ReHoming", "ThermalGrowth", "CableForce", "GrossOutliers",
 ]

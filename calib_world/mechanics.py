@@ -333,6 +333,42 @@ class BaseTilt(Cause):
 
 
 @dataclass(frozen=True)
+class ElasticBearings(Cause):
+    """The bearings of several joints give under the bending moment across their axes (an elastic arm, like
+    DLR's Agile Justin): at each joint in `bearings` everything beyond turns about the joint's axis point by
+    the rotation vector compliance (rad/(N*m)) x the part of the gravity + payload moment there (N*m, the
+    world's true masses) that is perpendicular to the joint axis."""
+
+    bearings: tuple = ()
+    compliance: tuple = ()
+    magnitude: ClassVar[tuple] = ("compliance",)
+    kind = "elastic_bearings"
+
+    def joints(self, robot):
+        return [robot.names[joint_index(robot, j)] for j in self.bearings]
+
+    def describe(self, robot):
+        return {"cause": type(self).__name__, "world_kind": self.kind, "bearings": self.joints(robot),
+                "compliance": list(self.compliance)}
+
+    def structure(self, ctx, pose):
+        r = ctx.robot
+        g = np.einsum("nab,b->na", pose.base[:, :3, :3], r.gravity)
+        com = r.body_coms(pose)
+        out = []
+        for j, c in zip(self.bearings, self.compliance):
+            k = joint_index(r, j)
+            at, z = pose.axis_points[:, k], pose.axes[:, k]
+            M = (r.mass[None, k:, None] * cross(com[:, k:] - at[:, None], g[:, None])).sum(1)
+            M = (M + np.asarray(ctx.payload, float)[:, None] * cross(pose.point - at, g)) / 1000.0
+            across = M - (M * z).sum(1, keepdims=True) * z
+            D = about_point(c * across, at)
+            F = pose.frames[:, k - 1] if k > 0 else pose.base
+            out.append(("pre", k, inverse(F) @ D @ F))
+        return out
+
+
+@dataclass(frozen=True)
 class RailStraightness(Cause):
     """A linear axis whose guide is not straight: the carriage of prismatic joint `joint` sits
     sag_mm sin(pi waves s + phase) sideways (s = 0..1 along the stroke), in the direction `direction`

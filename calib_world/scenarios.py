@@ -12,7 +12,7 @@ import numpy as np
 from calib_core.model import RobotModel
 
 from .campaign import REPEATABILITY_RANGE_MM, World
-from .mechanics import (BaseTilt, CableForce, Cantilever, EncoderScale, GearError, GearPlay, JointSpring,
+from .mechanics import (BaseTilt, CableForce, Cantilever, ElasticBearings, EncoderScale, GearError, GearPlay, JointSpring,
                         RailStraightness, ReHoming, ThermalGrowth)
 
 EXPECTED = {
@@ -24,6 +24,7 @@ EXPECTED = {
     "encoder_scale": "joint_scale",
     "rail_straightness": "axis_straightness",
     "cantilever": "link_deflection",
+    "elastic_bearings": "link_deflection",
     "telescopic_bending": "link_deflection",
     "thermal_growth": "thermal_drift",
     "base_tilt": "unexplained",
@@ -84,6 +85,23 @@ def _candidates(world: World, kind: str, q, cols, rng) -> list:
             if np.linalg.norm(o[:, k] - o[:, k - 1], axis=1).max() < 50.0:
                 continue  # no link worth bending
             out.append(Cantilever(k, 1e12))
+    elif kind == "elastic_bearings":
+        # every moving joint's bearing (a rail's carriage, a telescope's guide too) that carries a bending moment,
+        # compliances spread over a decade
+        pose = r.frames(q)
+        g = np.einsum("nab,b->na", pose.base[:, :3, :3], r.gravity)
+        com = r.body_coms(pose)
+        bent, big = [], []
+        for j in moving:
+            M = (r.mass[None, j:, None] * np.cross(com[:, j:] - pose.axis_points[:, j, None], g[:, None])).sum(1)
+            across = M - (M * pose.axes[:, j]).sum(1, keepdims=True) * pose.axes[:, j]
+            size = np.linalg.norm(across, axis=1).max() / 1000.0
+            if size > 0:
+                bent.append(j)
+                big.append(size)
+        if len(bent) > 1:
+            out = [ElasticBearings(tuple(bent), tuple(float(np.exp(rng.uniform(0, np.log(10)))) * 1e-4 / b
+                                                      for b in big))]
     elif kind == "thermal_growth":
         v = rng.normal(size=3)
         out = [ThermalGrowth(1.15e-5, tuple(0.01 * v / np.linalg.norm(v)))]

@@ -10,8 +10,8 @@ from pathlib import Path
 from .config import Settings
 
 HIDDEN_KINDS = ("joint_spring", "stiffening_spring", "hard_backlash", "soft_backlash", "gear_error", "encoder_scale",
-                "rail_straightness", "cantilever", "telescopic_bending", "thermal_growth", "base_tilt", "rehoming_step",
-                "cable_force")
+                "rail_straightness", "cantilever", "elastic_bearings", "telescopic_bending", "thermal_growth", "base_tilt",
+                "rehoming_step", "cable_force")
 """calib_world.KINDS, spelled out so that `calib --help` does not import numpy and scipy."""
 INSTRUMENTS = ("laser_tracker", "optical", "motion_capture", "total_station")
 """calib_core.instruments.INSTRUMENTS, spelled out likewise (tests check that they agree)."""

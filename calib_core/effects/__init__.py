@@ -10,13 +10,14 @@ from ..kinematics import Chain, nominal_vector
 from ..model import RobotModel
 from .base import Basis, Context, Effect, apply, has_loads, loads
 from .cartesian_effects import AxisStraightness, LinkDeflection, ThermalDrift
-from .gravity import LateralCompliance, LoadCompliance
+from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale
 from .residual import ResidualField
 from .structure import Probe, SessionStep
 
 CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointError, Backlash, JointScale,
                                    AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, LateralCompliance,
+                                   LateralJointCompliance,
                                    SessionStep, Probe)}
 KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
          "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
@@ -43,6 +44,10 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
         out += [Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * big[j])) for j in loaded]
         if model.has_mass:
             out += [LinkDeflection((k,)) for k in range(1, n)]
+            # every bearing tilting under its bending moment at once (vertical axes carry one too)
+            bent = [j for j in range(n) if model.moving[j] and model.mass[model.descendants(j)].sum() > 0]
+            if len(bent) > 1:
+                out.append(LateralJointCompliance(tuple(bent)))
         else:
             notes.append("the model has no masses: link_deflection needs mass data and is not tested (the "
                          "measured torques drive the joint causes)")
@@ -79,5 +84,5 @@ def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
     return cls(**{k: _frozen(v) for k, v in d.items()}), values
 
 
-__all__ = ["effect_state", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LoadCompliance", "Probe", "SessionStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
+__all__ = ["effect_state", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LateralJointCompliance", "LoadCompliance", "Probe", "SessionStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
            "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "ThermalDrift"]

@@ -53,15 +53,31 @@ def lateral_axes(chain, j: int) -> tuple[np.ndarray, np.ndarray]:
     return chain.R[j][:, :, 0], chain.R[j][:, :, 1]
 
 
-def payload_load(chain, payload_kg: np.ndarray, j: int) -> np.ndarray:
-    """Gravity load (N,) of the known payload at the measured point on joint j (N*m or N); 0 where j does not
-    carry the pose's target."""
+def payload_load(chain, payload_kg: np.ndarray, j: int, axis: np.ndarray | None = None) -> np.ndarray:
+    """Gravity load (N,) of the known payload at the measured point on joint j (N*m or N), or with `axis` its
+    moment about that axis through the joint; 0 where j does not carry the pose's target."""
     g = gravity_world(chain)
-    z = chain.z_axis[j]
+    z = chain.z_axis[j] if axis is None else axis
     load = payload_kg * chain.on_path[j]
-    if chain.model.prismatic[j]:
+    if chain.model.prismatic[j] and axis is None:
         return load * (z * g).sum(-1)
     return load * (z * _cross(chain.p - chain.o_theta[j], np.broadcast_to(g, z.shape))).sum(1) / 1000.0
+
+
+def body_parameters(model) -> np.ndarray:
+    """(n, 4) the model's mass data as regressor parameters: mass (kg) and first moment m*c (kg*mm, body frame)."""
+    return np.column_stack([model.mass, model.mass[:, None] * model.com])
+
+
+def load_from(chain, j: int, phi: np.ndarray, payload_kg: np.ndarray, axis: np.ndarray | None = None) -> np.ndarray:
+    """Gravity + payload load (N,) on joint j, N*m or N (or its moment about `axis`), from the mass data `phi`
+    ((n, 4), see body_parameters) instead of the model's: the same numbers as statics.joint_loads when phi is
+    the model's."""
+    Y = gravity_regressor(chain, j, axis)
+    carried = chain.model.descendants(j)
+    if chain.model.prismatic[j] and axis is None:
+        return Y @ phi[carried, 0] + payload_load(chain, payload_kg, j)
+    return Y @ phi[carried].ravel() + payload_load(chain, payload_kg, j, axis)
 
 
 def _as_matrix(t) -> np.ndarray:
@@ -204,3 +220,124 @@ class LateralCompliance(Effect):
         return (f"the bearings and links at {who} tilt under the gravity bending moment (lateral elasticity, "
                 "load identified from the data)")
 
+
+
+def _phi(effect, model) -> np.ndarray:
+    """An effect's mass data (n, 4): its own identified ones, else the model's."""
+    return np.asarray(effect.masses, float) if effect.masses else body_parameters(model)
+
+
+@dataclass(frozen=True)
+class LateralJointCompliance(Effect):
+    """The bearings and links at each joint tilt about the two axes across the joint (frame x and y) in
+    proportion to the gravity bending moment there, from the mass data (the transversal elasticity of an
+    elastic arm, Tenhumberg and Baeuml 2021): 2 compliances per joint, rad/(N*m). `masses` ((n, 4) mass and
+    first moment per body), when set, are mass data identified from the data instead of the model's."""
+
+    kind = "link_deflection"
+    needs = "mass"
+    masses: tuple = ()
+
+    def parameter_names(self, model):
+        return [f"{model.joint_names[j]}.lateral_compliance_{a}" for j in self.joints for a in "xy"]
+
+    def parameter_units(self, model):
+        return ["rad/(N*m)"] * 2 * len(self.joints)
+
+    def label(self, model):
+        return super().label(model) + " lateral" + (" identified masses" if self.masses else "")
+
+    def basis(self, ctx: Context) -> Basis:
+        ch = ctx.chain
+        phi, pay = _phi(self, ctx.model), ctx.meas.payload_kg()
+        cols = []
+        for j in self.joints:
+            lever = (ch.p - ch.o_theta[j]) * ch.on_path[j][:, None]  # a branch off the target's way moves nothing
+            for axis in lateral_axes(ch, j):
+                cols.append(_cross(axis, lever) * load_from(ch, j, phi, pay, axis)[:, None])
+        cart = np.stack(cols, axis=2)
+        return Basis(None, cart, np.linalg.norm(cart.sum(2), axis=1),
+                     "gravity bending moment across " + ",".join(ctx.model.joint_names[j] for j in self.joints))
+
+    def explain(self, model):
+        who = ", ".join(model.joint_names[j] for j in self.joints)
+        how = ", mass data identified from the data" if self.masses else ""
+        return f"the bearings and links at {who} tilt under the gravity bending moment (lateral elasticity{how})"
+
+
+MASS_PRIOR_SHARE = 0.5
+"""Prior std of an identified body mass as a share of the model's (at least this share of the mean body mass)."""
+MASS_PRIOR_LEVER_MM = 200.0
+"""Prior std of a body's first moment: its mass prior times this lever (mm)."""
+
+
+@dataclass(frozen=True)
+class MassStep(Effect):
+    """One Gauss-Newton step of the mass data under fixed compliances (never a reported cause): the
+    displacement of `causes` (joint and lateral compliances, fitted values `values`) per unit change of each
+    body's mass and first moment. Deflection = compliance x load(mass) is bilinear; fitting this beside the
+    causes themselves is the step."""
+
+    kind = "mass_data"
+    bodies: tuple = ()
+    causes: tuple = ()  # (effect, values) pairs
+    prior: tuple = ()
+
+    @property
+    def prior_std(self) -> np.ndarray:
+        return np.asarray(self.prior, float)
+
+    def parameter_names(self, model):
+        return [f"{model.joint_names[k]}.{p}" for k in self.bodies for p in ("mass", "first_x", "first_y", "first_z")]
+
+    def parameter_units(self, model):
+        return ["kg", "kg*mm", "kg*mm", "kg*mm"] * len(self.bodies)
+
+    def basis(self, ctx: Context) -> Basis:
+        ch, model = ctx.chain, ctx.model
+        N, n = ctx.meas.joints.shape
+        col = {k: i for i, k in enumerate(self.bodies)}
+        P = 4 * len(self.bodies)
+        bq, bp = np.zeros((N, n, P)), np.zeros((N, 3, P))
+
+        def spread(j, Y, out_cols):
+            """Regressor columns of the bodies joint j carries (N, 4 per body) into the step's columns."""
+            for i, k in enumerate(model.descendants(j)):
+                if k in col:
+                    out_cols(4 * col[k], Y[:, 4 * i:4 * i + 4])
+
+        for effect, values in self.causes:
+            v = np.asarray(values, float)
+            if isinstance(effect, LateralJointCompliance):
+                for t, j in enumerate(effect.joints):
+                    lever = (ch.p - ch.o_theta[j]) * ch.on_path[j][:, None]
+                    for a, axis in enumerate(lateral_axes(ch, j)):
+                        swing = _cross(axis, lever) * v[2 * t + a]
+
+                        def add(c, Y, swing=swing):
+                            bp[:, :, c:c + 4] += swing[:, :, None] * Y[:, None, :]
+                        spread(j, gravity_regressor(ch, j, axis), add)
+            else:  # a linear joint compliance
+                for t, j in enumerate(effect.joints):
+                    if model.prismatic[j]:
+                        continue
+
+                    def add(c, Y, j=j, vt=v[t]):
+                        bq[:, j, c:c + 4] += vt * Y
+                    spread(j, gravity_regressor(ch, j), add)
+        return Basis(bq, bp, np.zeros(N), "mass data")
+
+    def explain(self, model):
+        return "the mass data differ from the model's"
+
+
+def mass_step(causes, model) -> MassStep:
+    """The Gauss-Newton step of the mass data of every body with mass under the fitted `causes`."""
+    phi = body_parameters(model)
+    bodies = tuple(int(k) for k in np.flatnonzero(phi[:, 0] > 0))
+    floor = MASS_PRIOR_SHARE * phi[list(bodies), 0].mean() if bodies else 0.0
+    prior = []
+    for k in bodies:
+        m = max(MASS_PRIOR_SHARE * phi[k, 0], floor)
+        prior += [m] + [m * MASS_PRIOR_LEVER_MM] * 3
+    return MassStep((), bodies=bodies, causes=tuple(causes), prior=tuple(prior))

@@ -37,6 +37,7 @@ class JointCompliance(Effect):
     needs = "mass"
     stiffening: float = 0.0
     load_scale: float = 1.0  # N*m or N: the largest load in the calibration data
+    masses: tuple = ()  # (n, 4) mass data identified from the data (kg, kg*mm), else the model's (gravity.py)
 
     def parameter_names(self, model):
         return [f"{model.joint_names[j]}.compliance" for j in self.joints]
@@ -47,14 +48,27 @@ class JointCompliance(Effect):
     def basis(self, ctx: Context) -> Basis:
         N, n = ctx.meas.joints.shape
         b = np.zeros((N, n, len(self.joints)))
+        load = ctx.loads if not self.masses else self._loads(ctx)
         for i, j in enumerate(self.joints):
-            load = ctx.loads[:, j]
-            b[:, j, i] = hardening(load / self.load_scale, self.stiffening) * self.load_scale
+            b[:, j, i] = hardening(load[:, j] / self.load_scale, self.stiffening) * self.load_scale
         j = self.joints[0]
-        return Basis(b, None, ctx.loads[:, j], f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
+        return Basis(b, None, load[:, j], f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
+
+    def _loads(self, ctx: Context) -> np.ndarray:
+        """(N, n) loads from the identified mass data; a measured torque still wins where the CSV has one."""
+        from .gravity import load_from
+
+        phi, pay = np.asarray(self.masses, float), ctx.meas.payload_kg()
+        out = ctx.loads.copy()
+        for j in self.joints:
+            out[:, j] = load_from(ctx.chain, j, phi, pay)
+        if ctx.meas.tau is not None:
+            out = np.where(np.isnan(ctx.meas.tau), out, -np.nan_to_num(ctx.meas.tau))
+        return out
 
     def label(self, model):
-        return super().label(model) + (f" stiffening {self.stiffening:g}" if self.stiffening else "")
+        return (super().label(model) + (f" stiffening {self.stiffening:g}" if self.stiffening else "")
+                + (" identified masses" if self.masses else ""))
 
     def explain(self, model):
         who = ", ".join(model.joint_names[j] for j in self.joints)

@@ -25,6 +25,11 @@ TRUTH_LIMIT = 0.8
 """The extended model's error against the world's noise-free truth on fresh poses, times the noise RMS. The
 benchmark measures a median of 0.28-0.30x and a 90th percentile of 0.52-0.62x (docs/RESULTS.md, 3.2); a
 single draw must stay below this, where the geometry alone leaves 3-8x."""
+BEARINGS_TRUTH_LIMIT = 1.6
+"""Elastic bearings tilt under the bending moment across every joint, which depends on where the bodies really
+are: along a joint axis the geometric fit does not pin that down (an MD-H d offset of a parallel axis), so the
+lateral form is evaluated some 20 mm off and fits the world only approximately (0.4-1.2x the noise in
+development draws, with the mass data identified); the geometry alone leaves 3-8x."""
 PLAY_TRUTH_LIMIT = 2.0
 """For a gear play the identified switch misplaces a few poses, and each costs the full play: the benchmark
 measures 0.3-2.7x the noise at 1-4x (docs/RESULTS.md, section 3); the geometry alone leaves 3-8x here."""
@@ -115,7 +120,8 @@ def test_hidden_cause_is_found_blind(kind, seed):
     assert f["gain_pct"] > 0, where
     # with the cause in the model, fresh poses are predicted closer to the truth than the tracker measures
     ratio = _truth_error(world, d.calibration, info)
-    assert ratio < (PLAY_TRUTH_LIMIT if kind in PLAYS else TRUTH_LIMIT), (ratio, where)
+    limit = PLAY_TRUTH_LIMIT if kind in PLAYS else BEARINGS_TRUTH_LIMIT if kind == "elastic_bearings" else TRUTH_LIMIT
+    assert ratio < limit, (ratio, where)
 
 
 @pytest.mark.slow

@@ -1,0 +1,74 @@
+"""Agile Justin as one tree: what each elastic form of the product is worth on poses it never saw (issue 9).
+
+The product's own effects, fitted as the `auto` job would fit them once chosen (geometry chosen on held-out
+folds, then the causes jointly): joint compliance on the converter's guessed masses, + the lateral (bearing)
+compliance of every joint, + the mass data identified under both (diagnose._identify_masses). Split s is
+`split_70_30(poses, seed=s)` over recorded poses (both hands of a pose on the same side): s = 0 is
+benchmarks/real_cells.py's split, 1000 + k the k-th split of benchmarks/real_diagnosis.py.
+
+    .venv/bin/python -m benchmarks.justin_elastic [--splits 0 1000 1001]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from benchmarks.accuracy import split_70_30  # noqa: E402
+from benchmarks.real_cells import load  # noqa: E402
+from calib_core import diagnose as DG  # noqa: E402
+from calib_core.datasets import SHARED_DATASETS  # noqa: E402
+from calib_core.effects import JointCompliance, LateralJointCompliance, candidates  # noqa: E402
+from calib_core.identify import evaluate  # noqa: E402
+from calib_core.select import select_geometry  # noqa: E402
+
+
+def run(split: int) -> list[tuple[str, dict, float]]:
+    _, model, meas, groups = load("dlr_agile_justin", SHARED_DATASETS)
+    ids = np.unique(groups)
+    cal, test = split_70_30(len(ids), seed=split)
+    train = meas.subset(np.flatnonzero(np.isin(groups, ids[cal])))
+    held = meas.subset(np.flatnonzero(np.isin(groups, ids[test])))
+    t0 = time.time()
+    sel = select_geometry(model, train, loss=None, folds=5)
+    out = [("geometric (chosen on held-out folds)", evaluate(sel.calibration, held), time.time() - t0)]
+    fit = DG._Fitter(model, train, None, 5, sel.free, sel.prior_scale)
+    named, _ = candidates(model, train)
+    joint = next(e for e in named if type(e) is JointCompliance and len(e.joints) > 1)
+    lateral = next(e for e in named if isinstance(e, LateralJointCompliance))
+    for label, chosen in (("+ joint compliance of every joint (guessed masses)", [joint]),
+                          ("+ lateral compliance of every joint (guessed masses)", [joint, lateral])):
+        t0 = time.time()
+        cur = fit(chosen, sel.calibration.x)
+        out.append((label, evaluate(cur, held), time.time() - t0))
+    t0 = time.time()
+    notes: list[str] = []
+    masses = DG._identify_masses(cur, list(chosen), [], model, train, fit, notes)
+    out.append(("+ mass data identified under both" + ("" if notes else " (not kept: held-out folds object)"),
+                evaluate(masses, held), time.time() - t0))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--splits", type=int, nargs="+", default=[0, 1000, 1001])
+    args = ap.parse_args()
+    rows = {}
+    for s in args.splits:
+        for label, ev, sec in run(s):
+            rows.setdefault(label, []).append((s, ev, sec))
+            print(f"split {s}: {label}: held-out mean {ev['mean_mm']:.2f} / RMS {ev['rms_mm']:.2f} / max "
+                  f"{ev['max_mm']:.2f} mm ({sec:.0f} s)", flush=True)
+    print("\n| model | " + " | ".join(f"split {s} mean / RMS (mm)" for s in args.splits) + " | mean of splits |")
+    print("|---|" + "---|" * (len(args.splits) + 1))
+    for label, r in rows.items():
+        cells = " | ".join(f"{ev['mean_mm']:.2f} / {ev['rms_mm']:.2f}" for _, ev, _ in r)
+        print(f"| {label} | {cells} | {np.mean([ev['mean_mm'] for _, ev, _ in r]):.2f} |")
+
+
+if __name__ == "__main__":
+    main()

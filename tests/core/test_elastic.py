@@ -1,0 +1,82 @@
+"""Elastic structure with mass data identified from the data: the lateral (bearing) compliance of every joint and
+the Gauss-Newton steps of the bodies' masses under the compliances found (calib_core.effects.gravity)."""
+import dataclasses
+
+import numpy as np
+
+from calib_core import diagnose as DG
+from calib_core import kinematics as K
+from calib_core.effects import Context, JointCompliance, LateralJointCompliance, candidates
+from calib_core.effects.gravity import body_parameters, lateral_axes, load_from
+from calib_core.identify import CalibratedRobot, prealign
+from calib_core.model import parse_model
+from calib_core.statics import distal_loads, gravity_world, joint_loads
+from calib_core.twin import Twin
+
+from .test_tree import torso_two_arms
+
+TREE = parse_model(torso_two_arms(mass=True))
+MOVING = tuple(j for j in range(TREE.n_joints) if TREE.moving[j])
+
+
+def _poses(seed, n):
+    """n poses of the tree (both targets, a payload on some), their chain on the nominal geometry."""
+    meas = Twin(TREE, seed=seed, repeatability_mm=0.0, tracker_noise=False).measure(n=n)
+    rng = np.random.default_rng((seed, 5))
+    meas = dataclasses.replace(meas, payload=rng.choice([0.0, 5.0], n))
+    x, R0 = prealign(TREE, meas)
+    return meas, x, R0, K.Chain(TREE, x, meas.joints, R0, meas.labels)
+
+
+def test_loads_from_mass_data_are_the_statics_on_a_tree(seed):
+    meas, _, _, ch = _poses(seed, 40)
+    pay = meas.payload_kg()
+    want = joint_loads(ch, pay)
+    M, S = distal_loads(ch, pay)
+    g = gravity_world(ch)
+    phi = body_parameters(TREE)
+    for j in MOVING:
+        assert np.allclose(load_from(ch, j, phi, pay), want[:, j], rtol=0, atol=1e-9 * np.abs(want).max())
+        moment = np.cross(S[j] - M[j][:, None] * ch.o_theta[j], g) / 1000.0  # N*m about the joint's axis point
+        for axis in lateral_axes(ch, j):
+            assert np.allclose(load_from(ch, j, phi, pay, axis), (moment * axis).sum(1), atol=1e-9)
+
+
+def test_every_bearing_at_once_is_a_candidate_when_the_model_has_masses():
+    meas, *_ = _poses(1, 30)
+    named, _ = candidates(TREE, meas)
+    lateral = [e for e in named if isinstance(e, LateralJointCompliance)]
+    assert len(lateral) == 1 and set(lateral[0].joints) == set(MOVING)
+    bare = dataclasses.replace(TREE, mass=None, com=None)
+    assert not any(isinstance(e, LateralJointCompliance) for e in candidates(bare, meas)[0])
+
+
+def test_mass_data_are_identified_under_the_compliances(seed):
+    """Deflections made with mass data 0.6-1.6x the model's: fitting the compliances on the model's masses leaves
+    a load-shaped error; the mass steps remove most of it on fresh poses and say so in a note."""
+    rng = np.random.default_rng((seed, 6))
+    phi = body_parameters(TREE)
+    true = phi * rng.uniform(0.6, 1.6, len(phi))[:, None]
+    true[:, 1:] += rng.normal(0, 20.0, (len(phi), 3)) * true[:, :1]  # centres of mass 20 mm off
+    masses = tuple(map(tuple, true))
+    effects = (JointCompliance(MOVING, masses=masses), LateralJointCompliance(MOVING, masses=masses))
+    values = (rng.uniform(0.5, 2.0, len(MOVING)) * 1e-5, rng.uniform(0.5, 2.0, 2 * len(MOVING)) * 1e-5)  # rad/(N*m)
+    meas, x, R0, _ = _poses(seed, 200)
+    world = CalibratedRobot(TREE, x, R0, effects, values, x, ("",))
+    truth = world.predict(meas.joints, meas)
+    meas = dataclasses.replace(meas, points=truth + rng.normal(0, 0.01, truth.shape), sigma=np.full(200, 0.01))
+    fresh, *_ = _poses(seed + 1, 100)
+    fresh_truth = world.predict(fresh.joints, fresh)
+
+    fit = DG._Fitter(TREE, meas, None, 5, None, 1.0)
+    chosen = [JointCompliance(MOVING), LateralJointCompliance(MOVING)]
+    before = fit(chosen)
+    findings = [{"form": e.label(TREE), "kind": e.kind, "joints": []} for e in chosen]
+    notes = []
+    after = DG._identify_masses(before, chosen, findings, TREE, meas, fit, notes)
+
+    err = lambda cal: np.sqrt(np.mean(np.sum((cal.predict(fresh.joints, fresh) - fresh_truth) ** 2, 1)))  # noqa: E731
+    assert err(after) < 0.5 * err(before), (err(before), err(after))
+    assert all(e.masses for e in chosen), chosen
+    assert any("mass data were identified" in n for n in notes), notes
+    assert all("identified masses" in f["form"] for f in findings), findings
