@@ -25,19 +25,23 @@ def cell(server):
     meas = Measurements(joints=np.r_[a.joints, b.joints], points=np.r_[a.points, b.points @ R.T + t],
                         target=np.r_[a.target, b.target], setup=np.r_[np.zeros(120, int), np.ones(120, int)],
                         setup_names=("north", "south"))
+    return model, twin, R, t, _calibrated(server, doc, model, meas, "cell.csv", "geometric", 120)["calibration_id"]
+
+
+def _calibrated(server, doc, model, meas, filename, mode, timeout_s) -> dict:
+    """Upload the robot and its measurements over HTTP, run a `mode` job, wait for it: the succeeded job."""
     r = server.client.post("/robots", json=doc)
     assert r.status_code == 201, r.text
-    robot = r.json()
-    r = server.client.post(f"/robots/{robot['id']}/measurements",
-                           files={"file": ("cell.csv", write_measurements(meas, model), "text/csv")})
+    r = server.client.post(f"/robots/{r.json()['id']}/measurements",
+                           files={"file": (filename, write_measurements(meas, model), "text/csv")})
     assert r.status_code == 201, r.text
-    r = server.client.post("/jobs", json={"measurement_set_id": r.json()["id"], "model": "geometric"})
+    r = server.client.post("/jobs", json={"measurement_set_id": r.json()["id"], "model": mode})
     assert r.status_code == 202, r.text
     loc = r.headers["location"]
     job = wait_for(lambda: (lambda j: j if j["status"] in ("succeeded", "failed") else None)(
-        server.client.get(loc).json()), 120, "the job")
+        server.client.get(loc).json()), timeout_s, "the job")
     assert job["status"] == "succeeded", job
-    return model, twin, R, t, job["calibration_id"]
+    return job
 
 
 def test_tree_calibration_answer_has_one_torso_and_two_setups(server, cell):
@@ -115,17 +119,7 @@ def torque_cell(server):
     for j in doc["joints"]:
         del j["mass"], j["com"]
     model = parse_model(doc)
-    r = server.client.post("/robots", json=doc)
-    assert r.status_code == 201, r.text
-    r = server.client.post(f"/robots/{r.json()['id']}/measurements",
-                           files={"file": ("arm6_tau.csv", write_measurements(meas, model), "text/csv")})
-    assert r.status_code == 201, r.text
-    r = server.client.post("/jobs", json={"measurement_set_id": r.json()["id"], "model": "auto"})
-    assert r.status_code == 202, r.text
-    loc = r.headers["location"]
-    job = wait_for(lambda: (lambda j: j if j["status"] in ("succeeded", "failed") else None)(
-        server.client.get(loc).json()), 300, "the job")
-    assert job["status"] == "succeeded", job
+    job = _calibrated(server, doc, model, meas, "arm6_tau.csv", "auto", 300)
     doc = server.client.get(f"/calibrations/{job['calibration_id']}").json()
     kinds = [f["kind"] for f in doc["diagnosis"]["findings"]]
     assert "joint_compliance" in kinds, kinds
