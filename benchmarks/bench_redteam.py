@@ -53,10 +53,14 @@ HEALTH_P99_TARGET_MS = 200.0
 
 # ---------------------------------------------------------------- server
 
+SERVER_ENV: dict[str, str] = {}
+"""--server-env KEY=VALUE: extra CALIB_* settings for the server (A/B runs of a setting on the same tree)."""
+
+
 def start_server(db_path: Path, log: Path, port: int, max_upload: int | None) -> tuple[subprocess.Popen, float]:
     t0 = time.perf_counter()
     p = subprocess.Popen([sys.executable, "-m", "service.cli", "--log-level", "WARNING", "serve", "--port", str(port)],
-                         cwd=ROOT, env=server_env(db_path, max_upload), stdout=open(log, "ab"),
+                         cwd=ROOT, env={**server_env(db_path, max_upload), **SERVER_ENV}, stdout=open(log, "ab"),
                          stderr=subprocess.STDOUT, start_new_session=True)
     while time.perf_counter() - t0 < 180:
         if p.poll() is not None:
@@ -475,11 +479,14 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="keep the temp dir (database, server log)")
     ap.add_argument("--skip", action="append", default=[], metavar="TEXT",
                     help="leave out the kinds whose name contains TEXT (repeatable), to attribute a miss")
+    ap.add_argument("--server-env", action="append", default=[], metavar="KEY=VALUE",
+                    help="a setting for the server, e.g. CALIB_ROUTE_THREADS=4 (repeatable)")
     ap.add_argument("--_health", nargs=4, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a._health:
         health_poller(int(a._health[0]), float(a._health[1]), a._health[2], float(a._health[3]))
         return
+    SERVER_ENV.update(kv.split("=", 1) for kv in a.server_env)
 
     for kind in list(MIX):
         if any(x in kind for x in a.skip):
@@ -526,12 +533,14 @@ def main() -> None:
         hp = subprocess.Popen([sys.executable, __file__, "--_health", str(port), str(a.seconds), str(hout),
                                str(a.health_interval)], cwd=ROOT)
         t0 = time.monotonic()
+        load = [os.getloadavg()[0]]
         clients = [Client(k, port, inp, sh, t0 + a.seconds, a.timeout) for k in range(a.clients)]
         for c in clients:
             c.start()
         for c in clients:
             c.join(a.seconds + a.timeout + 60)
         wall = time.monotonic() - t0
+        load.append(os.getloadavg()[0])
         stuck = sum(c.is_alive() for c in clients)
         hp.wait(a.seconds + 120)
         time.sleep(1.0)
@@ -567,7 +576,9 @@ def main() -> None:
     # ------------------------------------------------------------ report
     n_all = sum(sum(s["codes"].values()) + s["transport"] for s in sh.stats.values())
     print(f"\n## Red-team load: {a.clients} clients, {wall:.0f} s, calib serve on SQLite (embedded workers), "
-          f"{os.cpu_count()} CPUs, limit {max_upload / 2**20:.0f} MiB\n")
+          f"{os.cpu_count()} CPUs, limit {max_upload / 2**20:.0f} MiB"
+          + (f", {' '.join(a.server_env)}" if a.server_env else "")
+          + f"; load average {load[0]:.1f} when the load began, {load[1]:.1f} when it ended\n")
     print(f"{n_all} requests ({n_all / wall:.1f}/s); clients still running at the end: {stuck}"
           + (f"; left out: {a.skip}" if a.skip else "") + "\n")
     print("| kind | requests | status codes | no answer | p50 ms | p99 ms |")

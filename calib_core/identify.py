@@ -333,6 +333,7 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
     if rows is not None and (evals is None or K_eff):
         raise ValueError("rows needs memoised evaluations of a geometric fit")
     y_rows = y if rows is None else y[rows]
+    pick = None if rows is None else np.ix_(np.flatnonzero(rows), np.arange(3), idx)  # rows and columns: one copy
 
     def residual_jac(xs):
         x = x0.copy()
@@ -341,7 +342,7 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
             if evals is not None:
                 p, J = evals(x)
                 if rows is not None:
-                    p, J = p[rows], J[rows]
+                    return y_rows - p[rows], J[pick]
                 return y_rows - p, J[:, :, idx]
             chain = K.Chain(model, x, q, R0, labels)
             return y - chain.p, chain.jacobian()[:, :, idx]

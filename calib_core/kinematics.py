@@ -9,6 +9,7 @@ R0 is a fixed reference rotation (from a rigid pre-alignment) so that the identi
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -130,16 +131,63 @@ def _per_setup_R0(R0, S: int) -> np.ndarray:
     return np.broadcast_to(R0, (S, 3, 3)) if R0.ndim == 2 else R0
 
 
+class _Static:
+    """What Chain needs of a model that never changes with x or q, computed once per model (its properties build
+    arrays on every call): per row the parent, whether it moves / is prismatic, its constant `pre` transform
+    (None for the identity), and the target rows and ancestors."""
+
+    def __init__(self, model: RobotModel):
+        n = model.n_joints
+        fixed, prismatic = model.is_fixed, model.prismatic
+        self.parents = [int(p) for p in model.parents]
+        self.revolute_q = [bool(not fixed[j] and not prismatic[j]) for j in range(n)]  # theta_i + q_i
+        self.prismatic_q = [bool(not fixed[j] and prismatic[j]) for j in range(n)]  # d_i + q_i
+        pre = model.pre
+        self.pre = [None if pre is None or np.array_equal(pre[j], _EYE4) else
+                    (pre[j, :3, 3].copy(), pre[j, :3, :3].copy()) for j in range(n)]
+        self.target_rows = model.target_rows
+        self.ancestors = model.ancestors()
+        self.prismatic = np.asarray(prismatic, bool)
+        self.moving = np.asarray(model.moving, bool)
+        self.serial = model.is_serial
+
+
+_STATIC: "weakref.WeakKeyDictionary[RobotModel, _Static]" = weakref.WeakKeyDictionary()
+
+
+def _static(model: RobotModel) -> _Static:
+    st = _STATIC.get(model)
+    if st is None:
+        st = _STATIC[model] = _Static(model)
+    return st
+
+
+def _cross_into(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis (broadcasting) written into out: the arithmetic of _cross, without its stack."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
 class Chain:
     """Frames of every row for N poses: the one pass that both FK and Jacobian need.
 
     Stores per row the world axes and origins at which each elementary MD-H motion acts, over a tree
     (each row follows its parent's frame), for each pose's target and setup (`labels`, default all 0).
+
+    Speed (an identification evaluates the chain a hundred times): a frame is carried as its three axes (columns)
+    and the elementary rotations are written out per column, not as (N, 3, 3) matrix products of a built matrix;
+    a rotation by a zero angle or a translation by zero length is skipped (it would add exact zeros); what
+    depends on the model alone is computed once per model (_Static).
     """
 
     def __init__(self, model: RobotModel, x: np.ndarray, q: np.ndarray, R0: np.ndarray | None = None,
                  labels: Labels | None = None):
         n = model.n_joints
+        st = _static(model)
         q = np.atleast_2d(np.asarray(q, dtype=float))
         N = q.shape[0]
         lay = layout(model, x)
@@ -157,9 +205,10 @@ class Chain:
         self.R0, self.Rbs, self.bases, self.setup, self.target = R0s[0] if S == 1 else R0s, Rbs, bases, setup, target
         self.Rb = Rbs[0] if S == 1 else Rbs[setup]  # (3, 3) or per pose (N, 3, 3)
         self.base_origin = bases[0, :3] if S == 1 else bases[setup, :3]
-        Rbase = np.broadcast_to(Rbs[0], (N, 3, 3)) if S == 1 else Rbs[setup]
-        obase = np.broadcast_to(bases[0, :3], (N, 3)) if S == 1 else bases[setup, :3]
-        par, fixed, pre = model.parents, model.is_fixed, model.pre
+        # the base frame's axes and origin: (3,) vectors shared by every pose, or per pose (N, 3)
+        Rbase = self.Rb
+        base_axes = (Rbase[..., 0], Rbase[..., 1], Rbase[..., 2])
+        obase = self.base_origin
         # per row: x axis / origin of frame i-1, z axis / origin after Tx(a), y axis / origin after Tz(d)
         self.x_prev = np.empty((n, N, 3))
         self.o_prev = np.empty((n, N, 3))
@@ -168,73 +217,106 @@ class Chain:
         self.y_beta = np.empty((n, N, 3))
         self.o_beta = np.empty((n, N, 3))
         self.R = np.empty((n, N, 3, 3))  # rotation of each joint frame
-        for j in range(n):
-            a, alpha, d, theta, beta = g[j]
-            R, o = (Rbase, obase) if par[j] < 0 else (self.R[par[j]], self.o_beta[par[j]])
-            if pre is not None and not np.array_equal(pre[j], _EYE4):
-                o = o + R @ pre[j, :3, 3]
-                R = R @ pre[j, :3, :3]
-            self.x_prev[j] = R[:, :, 0]
+        for j, (a, alpha, d, theta, beta) in enumerate(g.tolist()):
+            pj = st.parents[j]
+            if pj < 0:
+                (X, Y, Z), o = base_axes, obase
+            else:
+                Rp = self.R[pj]
+                X, Y, Z, o = Rp[:, :, 0], Rp[:, :, 1], Rp[:, :, 2], self.o_beta[pj]
+            pre = st.pre[j]
+            if pre is not None:  # o + R t, R P
+                t, P = pre
+                o = o + (X * t[0] + Y * t[1] + Z * t[2])
+                X, Y, Z = (X * P[0, 0] + Y * P[1, 0] + Z * P[2, 0], X * P[0, 1] + Y * P[1, 1] + Z * P[2, 1],
+                           X * P[0, 2] + Y * P[1, 2] + Z * P[2, 2])
+            self.x_prev[j] = X
             self.o_prev[j] = o
-            R1 = R @ _rx(alpha)
-            o1 = o + a * R[:, :, 0]
-            moves = not fixed[j]
-            th = np.broadcast_to(theta + (q[:, j] if moves and not model.prismatic[j] else 0.0), (N,))
-            dd = np.broadcast_to(d + (q[:, j] if moves and model.prismatic[j] else 0.0), (N,))
-            c, s = np.cos(th)[:, None], np.sin(th)[:, None]
-            xa = c * R1[:, :, 0] + s * R1[:, :, 1]
-            ya = c * R1[:, :, 1] - s * R1[:, :, 0]
-            za = R1[:, :, 2]
-            o2 = o1 + dd[:, None] * za
-            R2 = np.stack([xa, ya, za], axis=2)
-            self.z_axis[j] = za
+            if alpha != 0.0:  # R Rx(alpha): y and z turn about x
+                ca, sa = math.cos(alpha), math.sin(alpha)
+                Y, Z = Y * ca + Z * sa, Z * ca - Y * sa
+            o1 = o + a * X if a != 0.0 else o
+            if st.revolute_q[j]:
+                th = theta + q[:, j]
+                c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+            else:
+                c, s = math.cos(theta), math.sin(theta)
+            xa = c * X + s * Y
+            ya = c * Y - s * X
+            if st.prismatic_q[j]:
+                o2 = o1 + (d + q[:, j])[:, None] * Z
+            else:
+                o2 = o1 + d * Z if d != 0.0 else o1
+            self.z_axis[j] = Z
             self.o_theta[j] = o1
             self.y_beta[j] = ya
             self.o_beta[j] = o2
-            self.R[j] = R2 @ _ry(beta) if beta != 0.0 else R2
-        rows = model.target_rows
+            Rj = self.R[j]
+            if beta != 0.0:  # R2 Ry(beta)
+                cb, sb = math.cos(beta), math.sin(beta)
+                Rj[:, :, 0] = xa * cb - Z * sb
+                Rj[:, :, 1] = ya
+                Rj[:, :, 2] = xa * sb + Z * cb
+            else:
+                Rj[:, :, 0] = xa
+                Rj[:, :, 1] = ya
+                Rj[:, :, 2] = Z
+        rows = st.target_rows
         self.end_row = rows[target]  # (N,) the row each pose's target sits on
-        idx = np.arange(N)
-        self.o_end = self.o_beta[self.end_row, idx]
-        self.R_end = self.R[self.end_row, idx]
+        if T == 1 and len(rows) == 1:  # every pose on one row: plain copies instead of fancy indexing
+            r = int(rows[0])
+            self.o_end = self.o_beta[r].copy()
+            self.R_end = self.R[r].copy()
+        else:
+            idx = np.arange(N)
+            self.o_end = self.o_beta[self.end_row, idx]
+            self.R_end = self.R[self.end_row, idx]
         self.p = self.o_end + np.einsum("nab,nb->na", self.R_end, tools[target])  # (N, 3) in the measurement frame
-        self.on_path = model.ancestors()[self.end_row].T  # (n, N): row j carries pose i's target
+        self.on_path = st.ancestors[self.end_row].T  # (n, N): row j carries pose i's target
 
     def joint_jacobian(self) -> np.ndarray:
         """dp/dq for every row, shape (N, 3, n): z x (p - o) for revolute, z for prismatic, 0 for fixed rows
         and rows not on the way to the pose's target."""
+        st = _static(self.model)
         rev = _cross(self.z_axis, self.p[None] - self.o_theta)
         pri = self.z_axis
-        J = np.where(self.model.prismatic[:, None, None], pri, rev)
-        J = J * (self.on_path & self.model.moving[:, None])[..., None]
+        J = np.where(st.prismatic[:, None, None], pri, rev)
+        J = J * (self.on_path & st.moving[:, None])[..., None]
         return np.moveaxis(J, 0, 2)
 
     def jacobian(self) -> np.ndarray:
-        """dp/dx for the full parameter vector, shape (N, 3, P), x in mm and rad (layout())."""
+        """dp/dx for the full parameter vector, shape (N, 3, P), x in mm and rad (layout()).
+
+        Filled block by block into one (P, N, 3) array (returned as its (N, 3, P) view)."""
         n, N, p, lay = self.model.n_joints, self.N, self.p, self.layout
-        cols = np.empty((n, 5, N, 3))
+        J = np.empty((lay.size, N, 3))
+        cols = J[: 5 * n].reshape(n, 5, N, 3)
         cols[:, 0] = self.x_prev  # a_{i-1}: translation along x_{i-1}
-        cols[:, 1] = _cross(self.x_prev, p[None] - self.o_prev)  # alpha_{i-1}
+        _cross_into(cols[:, 1], self.x_prev, p[None] - self.o_prev)  # alpha_{i-1}
         cols[:, 2] = self.z_axis  # d_i
-        cols[:, 3] = _cross(self.z_axis, p[None] - self.o_theta)  # theta_i
-        cols[:, 4] = _cross(self.y_beta, p[None] - self.o_beta)  # beta_i
-        if not self.model.is_serial:
+        _cross_into(cols[:, 3], self.z_axis, p[None] - self.o_theta)  # theta_i
+        _cross_into(cols[:, 4], self.y_beta, p[None] - self.o_beta)  # beta_i
+        if not _static(self.model).serial:
             cols *= self.on_path[:, None, :, None]
-        geo = cols.reshape(5 * n, N, 3)
-        blocks = [geo]
         for s in range(lay.n_setups):
             base, R0 = self.bases[s], (self.R0 if lay.n_setups == 1 else self.R0[s])
             rz_axis = R0[:, 2]
             ry_axis = (R0 @ _rz(base[5]))[:, 1]
             rx_axis = (R0 @ _rz(base[5]) @ _ry(base[4]))[:, 0]
             dp = p - base[:3]
-            b = np.stack([np.broadcast_to(e, (N, 3)) for e in np.eye(3)]
-                         + [_cross(rx_axis, dp), _cross(ry_axis, dp), _cross(rz_axis, dp)])
-            blocks.append(b if lay.n_setups == 1 else b * (self.setup == s)[None, :, None])
+            b = J[lay.base(s)]
+            b[:3] = 0.0
+            b[0, :, 0] = b[1, :, 1] = b[2, :, 2] = 1.0
+            _cross_into(b[3], rx_axis, dp)
+            _cross_into(b[4], ry_axis, dp)
+            _cross_into(b[5], rz_axis, dp)
+            if lay.n_setups > 1:
+                b *= (self.setup == s)[None, :, None]
         for t in range(lay.n_targets):
-            tc = np.moveaxis(self.R_end, 2, 0)  # (3, N, 3)
-            blocks.append(tc if lay.n_targets == 1 else tc * (self.target == t)[None, :, None])
-        J = np.concatenate(blocks, axis=0)  # (P, N, 3)
+            tc = J[lay.tool(t)]
+            tc[:] = np.moveaxis(self.R_end, 2, 0)  # (3, N, 3)
+            if lay.n_targets > 1:
+                tc *= (self.target == t)[None, :, None]
         return np.moveaxis(J, 0, 2)
 
 

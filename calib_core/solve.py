@@ -123,11 +123,12 @@ def least_squares(
     r, rw, A, g, cost = normal_eq(x, w)
     mu = damping  # Marquardt damping, relative to the unit diagonal of the scaled normal matrix
     converged, it = False, 0
+    L, eye = np.diag(lam_diag), np.eye(p)
     for it in range(1, max_iter + 1):
-        H = A + np.diag(lam_diag)
+        H = A + L
         Hs, S = _scaled(H)
         try:  # step in the scaled variables z = D x: (S H S + mu I) dz = S g, dx = S dz
-            step = S * np.linalg.solve(Hs + mu * np.eye(p), S * g)
+            step = S * np.linalg.solve(Hs + mu * eye, S * g)
         except np.linalg.LinAlgError:
             mu *= 10
             continue

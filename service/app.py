@@ -3,6 +3,7 @@ faults as 503), offline docs, /health and the embedded dispatcher."""
 from __future__ import annotations
 
 import logging
+import sys
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from .jobs.router import router as jobs_router
 from .limits import (MAX_PREDICT_BYTES, MAX_PREDICT_ROWS, BatchLimitMiddleware, BodyLimitMiddleware, HeadMiddleware,
                      InternalErrorMiddleware)
 from .measurements.router import router as measurements_router
+from .measurements.service import PARSERS
 from .plans.router import router as plans_router
 from .robots.router import router as robots_router
 
@@ -79,23 +81,33 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
         # parsing and validation, Python holding the GIL; the more at once, the longer the event loop and
         # /health wait for the GIL between two steps, for no more throughput (one process: one core of Python)
         anyio.to_thread.current_default_thread_limiter().total_tokens = settings.route_threads
+        # how long a thread holding the GIL keeps it while another waits (CPython's default 5 ms): the event loop
+        # and /health take a dozen GIL turns per request, each up to one interval behind the route threads
+        sys.setswitchinterval(settings.switch_interval_ms / 1000)
+        import asyncio
+
+        parsers = None
+        if settings.parse_processes > 0:  # the CSV parse processes (service/measurements), warm before serving,
+            # started alongside the job processes
+            parsers = asyncio.ensure_future(asyncio.to_thread(PARSERS.warm, settings.parse_processes))
         d = None
         if run_dispatcher:
             from .queue.worker import Dispatcher
             d = Dispatcher(app.state.db, settings)
             d.start()
             if settings.warm_pool:  # serve once the job processes are warm: the first job is as fast as any
-                import asyncio
-
                 if not await asyncio.to_thread(d.wait_ready, settings.warmup_timeout_s):
                     log.warning("the job processes were not warm after %.0f s; serving anyway",
                                 settings.warmup_timeout_s)
+        if parsers is not None:
+            await parsers
         app.state.dispatcher = d
         try:
             yield
         finally:
             if d is not None:
                 d.stop()
+            PARSERS.shutdown()
             app.state.db.dispose()
 
     app = FastAPI(title="calib", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,

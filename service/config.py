@@ -33,6 +33,8 @@ class Settings:
     warmup_timeout_s: float = 30.0  # CALIB_WARMUP_TIMEOUT_S: `calib serve` waits at most this long for a warm pool
     test_poison: bool = False  # CALIB_TEST_POISON: tests only, CSV comment markers make a job crash or spin (runner.py)
     route_threads: int = 8  # CALIB_ROUTE_THREADS: the API's sync routes run at most this many at once (see app.py)
+    switch_interval_ms: float = 1.0  # CALIB_SWITCH_INTERVAL_MS: the API process's GIL switch interval (see app.py)
+    parse_processes: int = 1  # CALIB_PARSE_PROCESSES: uploads' CSVs are checked in this many processes (0: in the API)
     extra: dict = field(default_factory=dict)
 
     @classmethod
@@ -57,6 +59,8 @@ class Settings:
             warmup_timeout_s=_float("CALIB_WARMUP_TIMEOUT_S", 30.0),
             test_poison=os.environ.get("CALIB_TEST_POISON", "").lower() in ("1", "true", "yes"),
             route_threads=max(1, _int("CALIB_ROUTE_THREADS", 8)),
+            switch_interval_ms=min(100.0, max(0.1, _float("CALIB_SWITCH_INTERVAL_MS", 1.0))),
+            parse_processes=max(0, _int("CALIB_PARSE_PROCESSES", 1)),
         )
 
     @property

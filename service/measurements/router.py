@@ -57,7 +57,8 @@ def upload(robot_id: str, response: Response, file: UploadFile = File(..., descr
     raw = file.file.read(settings.max_upload_bytes + 1)
     if len(raw) > settings.max_upload_bytes:
         raise ProblemError(413, f"the upload exceeds {settings.max_upload_bytes} bytes", kind="too-large")
-    m = service.create_measurement_set(db, robot_id, raw, file.filename, instrument, limits)
+    m = service.create_measurement_set(db, robot_id, raw, file.filename, instrument, limits,
+                                       settings.parse_processes)
     response.headers["Location"] = f"/measurements/{m.id}"
     return MeasurementSetOut.of(m)
 

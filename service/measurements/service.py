@@ -4,6 +4,11 @@ from __future__ import annotations
 import csv
 import hashlib
 import logging
+import multiprocessing as mp
+import os
+import threading
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
@@ -34,30 +39,141 @@ MIN_POSES = 3
 MAX_FILENAME_CHARS = 255
 
 
+def _invalid(errors: list[dict], total: int) -> ProblemError:
+    shown = min(len(errors), MAX_ERRORS)
+    more = f" (the first {shown} are listed)" if total > shown else ""
+    return ProblemError(422, f"the CSV has {total} error{'s' * (total != 1)}{more}; nothing was stored",
+                        kind="invalid-csv", errors=errors, error_count=total, total_errors=total)
+
+
+def _unreadable() -> ProblemError:
+    return ProblemError(422, "the CSV cannot be read; nothing was stored", kind="invalid-csv",
+                        errors=[{"row": None, "column": None, "value": None,
+                                 "message": "the file cannot be read as a contract measurement CSV"}])
+
+
+def _too_few(n_poses: int, distinct: int) -> ProblemError:
+    what = (f"{n_poses} pose{'s' * (n_poses != 1)}" if distinct == n_poses else
+            f"{n_poses} poses but only {distinct} different joint configuration{'s' * (distinct != 1)}")
+    return ProblemError(422, f"the CSV holds {what}; a calibration needs at least {MIN_POSES} different poses "
+                        "(better: dozens spread over every joint's range); nothing was stored", kind="invalid-csv",
+                        errors=[{"row": None, "column": None, "value": n_poses,
+                                 "message": f"too few poses: {what}, a calibration needs at least {MIN_POSES} "
+                                            "different ones"}])
+
+
 def parse_or_reject(raw: bytes, model, instrument: str | None = None, limits: str = "reject") -> Measurements:
     try:
         meas = parse_measurements(raw, model, instrument=instrument, limits=limits)
     except MeasurementError as exc:
-        shown = min(len(exc.errors), MAX_ERRORS)
-        more = f" (the first {shown} are listed)" if exc.total > shown else ""
-        raise ProblemError(422, f"the CSV has {exc.total} error{'s' * (exc.total != 1)}{more}; nothing was stored",
-                           kind="invalid-csv", errors=exc.errors, error_count=exc.total,
-                           total_errors=exc.total) from None
+        raise _invalid(exc.errors, exc.total) from None
     except (ValueError, TypeError, IndexError, UnicodeError, ArithmeticError, csv.Error):
         log.info("unreadable CSV", exc_info=True)
-        raise ProblemError(422, "the CSV cannot be read; nothing was stored", kind="invalid-csv",
-                           errors=[{"row": None, "column": None, "value": None,
-                                    "message": "the file cannot be read as a contract measurement CSV"}]) from None
+        raise _unreadable() from None
     distinct = len(np.unique(np.round(meas.joints, DISTINCT_DECIMALS), axis=0))
     if distinct < MIN_POSES:
-        what = (f"{meas.n_poses} pose{'s' * (meas.n_poses != 1)}" if distinct == meas.n_poses else
-                f"{meas.n_poses} poses but only {distinct} different joint configuration{'s' * (distinct != 1)}")
-        raise ProblemError(422, f"the CSV holds {what}; a calibration needs at least {MIN_POSES} different poses "
-                           "(better: dozens spread over every joint's range); nothing was stored", kind="invalid-csv",
-                           errors=[{"row": None, "column": None, "value": meas.n_poses,
-                                    "message": f"too few poses: {what}, a calibration needs at least {MIN_POSES} "
-                                               "different ones"}])
+        raise _too_few(meas.n_poses, distinct)
     return meas
+
+
+def check_upload(raw: bytes, model, instrument: str | None = None, limits: str = "reject") -> dict:
+    """What an upload needs of its CSV, as plain data (it crosses a process boundary): {"n_poses",
+    "out_of_limits", "columns"}, or {"problem": (kind, args)} for the 422 parse_or_reject would raise."""
+    try:
+        meas = parse_measurements(raw, model, instrument=instrument, limits=limits)
+    except MeasurementError as exc:
+        return {"problem": ("invalid", (exc.errors, exc.total))}
+    except (ValueError, TypeError, IndexError, UnicodeError, ArithmeticError, csv.Error) as exc:
+        return {"problem": ("unreadable", ()), "why": f"{type(exc).__name__}: {exc}"[:1000]}
+    distinct = len(np.unique(np.round(meas.joints, DISTINCT_DECIMALS), axis=0))
+    if distinct < MIN_POSES:
+        return {"problem": ("too_few", (meas.n_poses, distinct))}
+    return {"n_poses": meas.n_poses, "out_of_limits": meas.out_of_limits, "columns": _header(raw)}
+
+
+_PROBLEMS = {"invalid": _invalid, "unreadable": _unreadable, "too_few": _too_few}
+
+
+class _Parsers:
+    """The CSV parse processes (CALIB_PARSE_PROCESSES): an upload's CSV is checked there, not in the API process,
+    whose GIL the event loop, /health and every other route share (issue 10: parsing was half of it under the
+    red team's load). A pool that broke (a parse process died) is replaced; the upload that saw it gets 503."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.pool: ProcessPoolExecutor | None = None
+        self.size = 0
+
+    def get(self, size: int) -> ProcessPoolExecutor:
+        with self.lock:
+            if self.pool is None or self.size != size:
+                if self.pool is not None:
+                    self.pool.shutdown(wait=False, cancel_futures=True)
+                self.pool = ProcessPoolExecutor(size, mp_context=mp.get_context("spawn"),
+                                                initializer=_parser_init)
+                self.size = size
+            return self.pool
+
+    def broken(self, pool: ProcessPoolExecutor) -> None:
+        with self.lock:
+            if self.pool is pool:
+                self.pool = None
+        pool.shutdown(wait=False, cancel_futures=True)
+
+    def warm(self, size: int) -> None:
+        """Start the processes and import the parser in them now, not on the first upload."""
+        if size > 0:
+            pool = self.get(size)
+            try:
+                for f in [pool.submit(_parser_ready) for _ in range(size)]:
+                    f.result(timeout=120)
+            except Exception:  # noqa: BLE001 - serve anyway: a broken pool is replaced at the next upload
+                log.warning("the CSV parse processes did not start; uploads will try again", exc_info=True)
+
+    def shutdown(self) -> None:
+        with self.lock:
+            pool, self.pool = self.pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+PARSERS = _Parsers()
+
+
+def _parser_init() -> None:
+    import signal
+
+    from ..queue.runner import _watch_parent
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when its parse processes end
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    _watch_parent(os.getppid())  # a server killed outright (SIGKILL) leaves no parse process behind
+
+
+def _parser_ready() -> int:
+    return os.getpid()
+
+
+def checked_upload(raw: bytes, model, instrument: str | None = None, limits: str = "reject",
+                   processes: int = 0) -> dict:
+    """check_upload in a parse process (processes > 0) or here (0); raises the 422 ProblemError it names."""
+    if processes > 0:
+        pool = PARSERS.get(processes)
+        try:
+            out = pool.submit(check_upload, raw, model, instrument, limits).result()
+        except BrokenProcessPool:
+            PARSERS.broken(pool)
+            log.warning("a CSV parse process died; the parse pool is restarted")
+            raise ProblemError(503, "the CSV could not be checked (its parse process died); nothing was stored; "
+                               "try again", kind="unavailable", headers={"Retry-After": "1"}) from None
+    else:
+        out = check_upload(raw, model, instrument, limits)
+    if "problem" in out:
+        kind, args = out["problem"]
+        if kind == "unreadable":
+            log.info("unreadable CSV: %s", out.get("why"))
+        raise _PROBLEMS[kind](*args)
+    return out
 
 
 def check_filename(filename: str | None) -> str | None:
@@ -77,16 +193,18 @@ def check_filename(filename: str | None) -> str | None:
 
 
 def create_measurement_set(db: Database, robot_id: str, raw: bytes, filename: str | None,
-                           instrument: str | None = None, limits: str = "reject") -> MeasurementSet:
-    """Parse outside any write transaction (robots are immutable), then insert in one short transaction.
+                           instrument: str | None = None, limits: str = "reject",
+                           parse_processes: int = 0) -> MeasurementSet:
+    """Parse outside any write transaction (robots are immutable; in a parse process when parse_processes > 0),
+    then insert in one short transaction; nothing is stored unless the whole CSV is good.
     `instrument` and `limits` are stored with the set: its jobs re-parse the CSV with them."""
     with db.read_session() as s:
         model = model_of(get_robot(s, robot_id))
     filename = check_filename(filename)
-    meas = parse_or_reject(raw, model, instrument, limits)
-    m = MeasurementSet(robot_id=robot_id, filename=filename, n_poses=meas.n_poses, columns=_header(raw),
+    out = checked_upload(raw, model, instrument, limits, parse_processes)
+    m = MeasurementSet(robot_id=robot_id, filename=filename, n_poses=out["n_poses"], columns=out["columns"],
                        size_bytes=len(raw), sha256=hashlib.sha256(raw).hexdigest(), raw=raw,
-                       instrument=instrument, limits=limits, out_of_limits=meas.out_of_limits)
+                       instrument=instrument, limits=limits, out_of_limits=out["out_of_limits"])
     with db.session() as s:
         s.add(m)
     return m

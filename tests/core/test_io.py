@@ -259,3 +259,77 @@ def test_limits_warn_keeps_the_other_checks():
     assert errs[0]["column"] == "J2" and "36000 deg" in errs[0]["message"]
     with pytest.raises(MeasurementError, match="unknown limits mode: one of reject, warn"):
         parse_measurements(f"{HEADER}\n{ROW}\n", MODEL, limits="ignore")
+
+
+@pytest.mark.parametrize("quoted", [False, True])
+def test_a_wide_header_is_counted_exactly_without_being_split(quoted):
+    """A header of 1001 columns is refused naming its exact count, with or without quotes (the unquoted one is
+    counted by its commas, never split into a list)."""
+    from calib_core.io import MAX_COLUMNS
+
+    cell = '"c"' if quoted else "c"
+    errs = _errors(",".join([cell] * (MAX_COLUMNS + 1)) + "\n" + ROW)
+    assert len(errs) == 1 and errs[0]["row"] == 1 and errs[0]["value"] == MAX_COLUMNS + 1, errs
+    assert f"the header has {MAX_COLUMNS + 1} columns" in errs[0]["message"]
+
+
+def test_a_data_row_of_commas_is_counted_and_a_quoted_one_refused_unread():
+    from calib_core.io import MAX_QUOTED_COMMAS
+
+    errs = _errors("\n".join([HEADER, ROW, "," * 2_000_000, ROW.replace("P001", "P002")]))
+    assert [(e["row"], e["value"]) for e in errs] == [(3, 2_000_001)], errs
+    assert "expected 12 fields like the header, found 2000001" in errs[0]["message"]
+    errs = _errors("\n".join([HEADER, ROW, '"a"' + "," * MAX_QUOTED_COMMAS]))
+    assert len(errs) == 1 and errs[0]["row"] == 3 and errs[0]["column"] is None, errs
+    assert "quotes" in errs[0]["message"] and str(MAX_QUOTED_COMMAS) in errs[0]["message"]
+    assert len(str(errs[0]["value"])) < 200
+
+
+def test_split_is_csv_reader_on_lines_without_quotes():
+    """_split's str.split path gives exactly what csv.reader(skipinitialspace=True) gives, on random lines of
+    commas, spaces, tabs and text; its long-field test agrees with measuring every piece."""
+    import csv
+    import random
+
+    from calib_core.io import _longest_over, _split
+
+    rng = random.Random(7)
+    for _ in range(3000):
+        line = "".join(rng.choice([",", " ", "\t", "a", "1", ".", "-", "  "]) for _ in range(rng.randrange(0, 40)))
+        if not line.strip():
+            continue
+        assert _split(line) == next(csv.reader([line], skipinitialspace=True)), repr(line)
+    for _ in range(300):
+        pieces = [rng.choice(["", "x" * rng.randrange(0, 40)]) for _ in range(rng.randrange(1, 12))]
+        line = ",".join(pieces)
+        limit = rng.randrange(1, 45)
+        assert _longest_over(line, limit) == (max(map(len, pieces)) > limit), (line, limit)
+
+
+@pytest.mark.parametrize("limits", ["reject", "warn"])
+def test_the_column_at_a_time_path_gives_the_per_value_answer(monkeypatch, seed, limits):
+    """Numeric columns are parsed a column at a time when nothing is wrong with them; the per value loop (used at
+    the first doubt, naming every problem) must give the same Measurements bit for bit: sigma, payload,
+    temperature, spaces around numbers, values beyond the joint limits (limits="warn")."""
+    from calib_core import io as csvio
+
+    meas = Twin(MODEL, seed).measure(n=40)
+    rng = np.random.default_rng(seed)
+    meas.payload = rng.uniform(0, 10, 40)
+    meas.sigma = rng.uniform(0.005, 0.05, 40)
+    meas.temperature = rng.uniform(15, 30, 40)
+    lines = write_measurements(meas, MODEL).splitlines()
+    lines[3] = lines[3].replace(",", ", ")  # spaces after commas
+    if limits == "warn":  # J2 beyond its limits on two rows
+        for k in (5, 9):
+            f = lines[k].split(",")
+            f[2] = "80.5"
+            lines[k] = ",".join(f)
+    text = "\n".join(lines) + "\n"
+    fast = parse_measurements(text, MODEL, limits=limits)
+    monkeypatch.setattr(csvio, "_numeric_columns", lambda *a, **k: None)
+    slow = parse_measurements(text, MODEL, limits=limits)
+    for name in ("joints", "points", "payload", "sigma", "temperature", "timestamp"):
+        assert np.array_equal(getattr(fast, name), getattr(slow, name)), name
+    assert fast.point_ids == slow.point_ids and fast.out_of_limits == slow.out_of_limits
+    assert (fast.out_of_limits[0]["first_rows"] == [6, 10]) if limits == "warn" else not fast.out_of_limits
