@@ -320,7 +320,7 @@ class MassStep(Effect):
             else:  # a linear joint compliance
                 for t, j in enumerate(effect.joints):
                     if model.prismatic[j]:
-                        continue
+                        continue  # a linear axis' force changes with the carried mass only: left to the fit
 
                     def add(c, Y, j=j, vt=v[t]):
                         bq[:, j, c:c + 4] += vt * Y

@@ -194,9 +194,14 @@ def test_auto_answer_carries_the_contract_diagnosis_and_restores(seed):
     f = d["findings"][0]
     assert set(f) >= {"kind", "joints", "holdout_rms_before_mm", "holdout_rms_after_mm", "gain_pct", "evidence"}
     where = (seed, info["parameters"], _said(type("D", (), {"findings": d["findings"]})))
-    assert f["kind"] == "cyclic_joint_error" and f["joints"] == info["joints"], where
-    assert f["harmonic"] == info["cause"].harmonic, where
-    assert out["model"] == ["geometric", "cyclic_joint_error"], where
+    # named, or its look-alike named with it listed (a first harmonic over a short range looks like a scale error:
+    # seed 755764221 named joint_scale[J2] with cyclic_joint_error[J2] indistinguishable)
+    assert _named(d["findings"][:1], "cyclic_joint_error", info["joints"]), where
+    if f["kind"] == "cyclic_joint_error":
+        assert f["harmonic"] == info["cause"].harmonic, where
+    else:
+        assert info["cause"].harmonic == 1 and f["kind"] == "joint_scale", where
+    assert out["model"] == ["geometric", f["kind"]], where
     robot = CalibratedRobot.from_state(SPRAY, out["robot_state"])
     assert _truth_error(world, robot, info, n=50) < TRUTH_LIMIT, where
 
