@@ -20,12 +20,17 @@ def com_world(chain: Chain) -> np.ndarray:
     return chain.o_beta + np.einsum("jnab,jb->jna", chain.R, chain.model.com)
 
 
-def distal_loads(chain: Chain, payload_kg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def distal_loads(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Mass (n, N) kg and first moment (n, N, 3) kg*mm of everything row j carries: its descendants in the tree
-    and the payload at the measured target when j is on the way to it."""
-    m = chain.model.mass
-    com = com_world(chain)
-    first = m[:, None, None] * com
+    and the payload at the measured target when j is on the way to it. `phi` ((n, 4): mass and first moment m*c in
+    the body frame) replaces the model's mass data (mass data identified from the measurements)."""
+    if phi is None:
+        m = chain.model.mass
+        first = m[:, None, None] * com_world(chain)
+    else:
+        m = phi[:, 0]
+        first = m[:, None, None] * chain.o_beta + np.einsum("jnab,jb->jna", chain.R, phi[:, 1:])
     if chain.model.is_serial:
         M = np.cumsum(m[::-1])[::-1][:, None] + payload_kg[None, :]
         S = np.cumsum(first[::-1], axis=0)[::-1] + payload_kg[None, :, None] * chain.p[None]
@@ -35,18 +40,33 @@ def distal_loads(chain: Chain, payload_kg: np.ndarray) -> tuple[np.ndarray, np.n
     return (D @ m)[:, None] + pay, np.einsum("jk,kna->jna", D, first) + pay[..., None] * chain.p[None]
 
 
-def joint_loads(chain: Chain, payload_kg: np.ndarray) -> np.ndarray:
-    """Gravity torque about each revolute axis (N*m) or force along each prismatic axis (N), shape (N, n).
+def gravity_moments(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None) -> np.ndarray:
+    """Moment (n, N, 3) N*m of the gravity of everything row j carries about row j's axis point (o_theta): its
+    part along the axis loads a revolute joint, the part across it bends the bearing."""
+    return _moments(chain, *distal_loads(chain, payload_kg, _mass_data(chain, phi)))
+
+
+def _mass_data(chain: Chain, phi: np.ndarray | None) -> np.ndarray | None:
+    """phi, or None for the model's mass data when it has some."""
+    if phi is None and chain.model.mass is None:
+        raise ValueError("the model has no masses and centres of mass: no gravity model is possible")
+    return phi
+
+
+def _moments(chain: Chain, M: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """(n, N, 3) N*m: the carried mass M at its centre S / M, about each row's axis point."""
+    return _cross(S - M[..., None] * chain.o_theta, np.broadcast_to(gravity_world(chain), S.shape)) / 1000.0
+
+
+def joint_loads(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None) -> np.ndarray:
+    """Gravity torque about each revolute axis (N*m) or force along each prismatic axis (N), shape (N, n), from
+    the model's mass data or `phi` (see distal_loads).
 
     Sign convention: the load a positive joint motion works against is negative.
     """
-    if chain.model.mass is None:
-        raise ValueError("the model has no masses and centres of mass: no gravity model is possible")
-    g = gravity_world(chain)
-    M, S = distal_loads(chain, payload_kg)
-    moment = _cross(S - M[..., None] * chain.o_theta, np.broadcast_to(g, S.shape)) / 1000.0  # N*m
-    torque = np.einsum("jna,jna->jn", moment, chain.z_axis)
-    force = M * (chain.z_axis * g).sum(-1)
+    M, S = distal_loads(chain, payload_kg, _mass_data(chain, phi))
+    torque = np.einsum("jna,jna->jn", _moments(chain, M, S), chain.z_axis)
+    force = M * (chain.z_axis * gravity_world(chain)).sum(-1)
     return np.where(chain.model.prismatic[:, None], force, torque).T
 
 

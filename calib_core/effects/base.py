@@ -38,12 +38,13 @@ def has_loads(model: RobotModel, meas: Measurements) -> bool:
     return model.has_mass or meas.tau is not None
 
 
-def loads(chain: Chain, meas: Measurements) -> np.ndarray:
+def loads(chain: Chain, meas: Measurements, phi: np.ndarray | None = None) -> np.ndarray:
     """(N, n) N*m or N.  A measured joint torque tau (tau_<joint>, what the joint applies to hold the arm) is the
-    gravity load's opposite, so the load is -tau; joints without a measured torque take the model's statics
-    (zero when the model has no masses)."""
+    gravity load's opposite, so the load is -tau; joints without a measured torque take the statics of the model's
+    mass data or of `phi` (identified ones, see statics.distal_loads); zero when there are none."""
     model = chain.model
-    out = joint_loads(chain, meas.payload_kg()) if model.has_mass else np.zeros((chain.N, model.n_joints))
+    out = (joint_loads(chain, meas.payload_kg(), phi) if model.has_mass or phi is not None
+           else np.zeros((chain.N, model.n_joints)))
     if meas.tau is not None:
         given = ~np.isnan(meas.tau)
         out = np.where(given, -np.nan_to_num(meas.tau), out)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..kinematics import _cross
-from ..statics import gravity_world
+from ..statics import gravity_moments, gravity_world
 from .base import Basis, Context, Effect
 
 MAX_LOAD_TERMS = 6
@@ -53,13 +53,13 @@ def lateral_axes(chain, j: int) -> tuple[np.ndarray, np.ndarray]:
     return chain.R[j][:, :, 0], chain.R[j][:, :, 1]
 
 
-def payload_load(chain, payload_kg: np.ndarray, j: int, axis: np.ndarray | None = None) -> np.ndarray:
-    """Gravity load (N,) of the known payload at the measured point on joint j (N*m or N), or with `axis` its
-    moment about that axis through the joint; 0 where j does not carry the pose's target."""
+def payload_load(chain, payload_kg: np.ndarray, j: int) -> np.ndarray:
+    """Gravity load (N,) of the known payload at the measured point on joint j (N*m or N); 0 where j does not
+    carry the pose's target."""
     g = gravity_world(chain)
-    z = chain.z_axis[j] if axis is None else axis
+    z = chain.z_axis[j]
     load = payload_kg * chain.on_path[j]
-    if chain.model.prismatic[j] and axis is None:
+    if chain.model.prismatic[j]:
         return load * (z * g).sum(-1)
     return load * (z * _cross(chain.p - chain.o_theta[j], np.broadcast_to(g, z.shape))).sum(1) / 1000.0
 
@@ -67,17 +67,6 @@ def payload_load(chain, payload_kg: np.ndarray, j: int, axis: np.ndarray | None 
 def body_parameters(model) -> np.ndarray:
     """(n, 4) the model's mass data as regressor parameters: mass (kg) and first moment m*c (kg*mm, body frame)."""
     return np.column_stack([model.mass, model.mass[:, None] * model.com])
-
-
-def load_from(chain, j: int, phi: np.ndarray, payload_kg: np.ndarray, axis: np.ndarray | None = None) -> np.ndarray:
-    """Gravity + payload load (N,) on joint j, N*m or N (or its moment about `axis`), from the mass data `phi`
-    ((n, 4), see body_parameters) instead of the model's: the same numbers as statics.joint_loads when phi is
-    the model's."""
-    Y = gravity_regressor(chain, j, axis)
-    carried = chain.model.descendants(j)
-    if chain.model.prismatic[j] and axis is None:
-        return Y @ phi[carried, 0] + payload_load(chain, payload_kg, j)
-    return Y @ phi[carried].ravel() + payload_load(chain, payload_kg, j, axis)
 
 
 def _as_matrix(t) -> np.ndarray:
@@ -222,11 +211,6 @@ class LateralCompliance(Effect):
 
 
 
-def _phi(effect, model) -> np.ndarray:
-    """An effect's mass data (n, 4): its own identified ones, else the model's."""
-    return np.asarray(effect.masses, float) if effect.masses else body_parameters(model)
-
-
 @dataclass(frozen=True)
 class LateralJointCompliance(Effect):
     """The bearings and links at each joint tilt about the two axes across the joint (frame x and y) in
@@ -249,12 +233,13 @@ class LateralJointCompliance(Effect):
 
     def basis(self, ctx: Context) -> Basis:
         ch = ctx.chain
-        phi, pay = _phi(self, ctx.model), ctx.meas.payload_kg()
+        masses = np.asarray(self.masses, float) if self.masses else None
+        moment = gravity_moments(ch, ctx.meas.payload_kg(), masses)  # (n, N, 3) N*m about each axis point
         cols = []
         for j in self.joints:
             lever = (ch.p - ch.o_theta[j]) * ch.on_path[j][:, None]  # a branch off the target's way moves nothing
             for axis in lateral_axes(ch, j):
-                cols.append(_cross(axis, lever) * load_from(ch, j, phi, pay, axis)[:, None])
+                cols.append(_cross(axis, lever) * (moment[j] * axis).sum(-1)[:, None])
         cart = np.stack(cols, axis=2)
         return Basis(None, cart, np.linalg.norm(cart.sum(2), axis=1),
                      "gravity bending moment across " + ",".join(ctx.model.joint_names[j] for j in self.joints))
@@ -296,36 +281,28 @@ class MassStep(Effect):
     def basis(self, ctx: Context) -> Basis:
         ch, model = ctx.chain, ctx.model
         N, n = ctx.meas.joints.shape
-        col = {k: i for i, k in enumerate(self.bodies)}
         P = 4 * len(self.bodies)
         bq, bp = np.zeros((N, n, P)), np.zeros((N, 3, P))
-
-        def spread(j, Y, out_cols):
-            """Regressor columns of the bodies joint j carries (N, 4 per body) into the step's columns."""
-            for i, k in enumerate(model.descendants(j)):
-                if k in col:
-                    out_cols(4 * col[k], Y[:, 4 * i:4 * i + 4])
-
         for effect, values in self.causes:
             v = np.asarray(values, float)
-            if isinstance(effect, LateralJointCompliance):
-                for t, j in enumerate(effect.joints):
+            for t, j in enumerate(effect.joints):
+                src, dst = self._columns(model, j)
+                if isinstance(effect, LateralJointCompliance):
                     lever = (ch.p - ch.o_theta[j]) * ch.on_path[j][:, None]
                     for a, axis in enumerate(lateral_axes(ch, j)):
                         swing = _cross(axis, lever) * v[2 * t + a]
-
-                        def add(c, Y, swing=swing):
-                            bp[:, :, c:c + 4] += swing[:, :, None] * Y[:, None, :]
-                        spread(j, gravity_regressor(ch, j, axis), add)
-            else:  # a linear joint compliance
-                for t, j in enumerate(effect.joints):
-                    if model.prismatic[j]:
-                        continue  # a linear axis' force changes with the carried mass only: left to the fit
-
-                    def add(c, Y, j=j, vt=v[t]):
-                        bq[:, j, c:c + 4] += vt * Y
-                    spread(j, gravity_regressor(ch, j), add)
+                        bp[:, :, dst] += swing[:, :, None] * gravity_regressor(ch, j, axis)[:, None, src]
+                elif not model.prismatic[j]:  # a linear axis' force changes with the carried mass only: left to the fit
+                    bq[:, j, dst] += v[t] * gravity_regressor(ch, j)[:, src]
         return Basis(bq, bp, np.zeros(N), "mass data")
+
+    def _columns(self, model, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """Joint j's regressor columns (gravity_regressor: 4 per carried body) of the bodies this step identifies,
+        and the step's columns they go to."""
+        at = {k: i for i, k in enumerate(self.bodies)}
+        pairs = [(4 * i + c, 4 * at[k] + c) for i, k in enumerate(model.descendants(j)) if k in at for c in range(4)]
+        src, dst = np.array(pairs, int).reshape(-1, 2).T
+        return src, dst
 
     def explain(self, model):
         return "the mass data differ from the model's"

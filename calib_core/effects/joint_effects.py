@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model import RobotModel
-from .base import Basis, Context, Effect, joint_basis
+from .base import Basis, Context, Effect, joint_basis, loads
 
 
 def _offset_unit(model: RobotModel, j: int) -> str:
@@ -48,23 +48,11 @@ class JointCompliance(Effect):
     def basis(self, ctx: Context) -> Basis:
         N, n = ctx.meas.joints.shape
         b = np.zeros((N, n, len(self.joints)))
-        load = ctx.loads if not self.masses else self._loads(ctx)
+        load = ctx.loads if not self.masses else loads(ctx.chain, ctx.meas, np.asarray(self.masses, float))
         for i, j in enumerate(self.joints):
             b[:, j, i] = hardening(load[:, j] / self.load_scale, self.stiffening) * self.load_scale
         j = self.joints[0]
         return Basis(b, None, load[:, j], f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
-
-    def _loads(self, ctx: Context) -> np.ndarray:
-        """(N, n) loads from the identified mass data; a measured torque still wins where the CSV has one."""
-        from .gravity import load_from
-
-        phi, pay = np.asarray(self.masses, float), ctx.meas.payload_kg()
-        out = ctx.loads.copy()
-        for j in self.joints:
-            out[:, j] = load_from(ctx.chain, j, phi, pay)
-        if ctx.meas.tau is not None:
-            out = np.where(np.isnan(ctx.meas.tau), out, -np.nan_to_num(ctx.meas.tau))
-        return out
 
     def label(self, model):
         return (super().label(model) + (f" stiffening {self.stiffening:g}" if self.stiffening else "")

@@ -7,10 +7,10 @@ import numpy as np
 from calib_core import diagnose as DG
 from calib_core import kinematics as K
 from calib_core.effects import Context, JointCompliance, LateralJointCompliance, candidates
-from calib_core.effects.gravity import body_parameters, lateral_axes, load_from
+from calib_core.effects.gravity import body_parameters, gravity_regressor, lateral_axes, payload_load
 from calib_core.identify import CalibratedRobot, prealign
 from calib_core.model import parse_model
-from calib_core.statics import distal_loads, gravity_world, joint_loads
+from calib_core.statics import distal_loads, gravity_moments, gravity_world, joint_loads
 from calib_core.twin import Twin
 
 from .test_tree import torso_two_arms
@@ -35,11 +35,16 @@ def test_loads_from_mass_data_are_the_statics_on_a_tree(seed):
     M, S = distal_loads(ch, pay)
     g = gravity_world(ch)
     phi = body_parameters(TREE)
+    moment = np.cross(S - M[..., None] * ch.o_theta, g) / 1000.0  # N*m about each joint's axis point
+    assert np.allclose(joint_loads(ch, pay, phi), want, rtol=0, atol=1e-9 * np.abs(want).max())
+    assert np.allclose(gravity_moments(ch, pay, phi), moment, atol=1e-9)
+    bare = gravity_moments(ch, np.zeros_like(pay), phi)  # what the mass step's regressor columns must add up to
     for j in MOVING:
-        assert np.allclose(load_from(ch, j, phi, pay), want[:, j], rtol=0, atol=1e-9 * np.abs(want).max())
-        moment = np.cross(S[j] - M[j][:, None] * ch.o_theta[j], g) / 1000.0  # N*m about the joint's axis point
+        carried = phi[TREE.descendants(j)].ravel()
+        Y = gravity_regressor(ch, j) @ carried + payload_load(ch, pay, j)
+        assert np.allclose(Y, want[:, j], rtol=0, atol=1e-9 * np.abs(want).max())
         for axis in lateral_axes(ch, j):
-            assert np.allclose(load_from(ch, j, phi, pay, axis), (moment * axis).sum(1), atol=1e-9)
+            assert np.allclose(gravity_regressor(ch, j, axis) @ carried, (bare[j] * axis).sum(1), atol=1e-9)
 
 
 def test_every_bearing_at_once_is_a_candidate_when_the_model_has_masses():
