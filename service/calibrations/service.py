@@ -251,7 +251,7 @@ def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temp
     more += _range_problems("payload", payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
     more += _range_problems("temperature", temperature, *TEMPERATURE_RANGE_C, "deg C", errors)
     torques, hidden = _tau(model, tau, len(joints), errors)
-    _reject("the joints do not fit the robot model", errors, more + hidden)
+    _reject("the request does not fit the robot model", errors, more + hidden)
     q = model.expand_joints(np.asarray(joints, float) * model.joint_scale()[model.actuated])
     robot = CalibratedRobot.from_state(model, c.robot_state)
     load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (len(q),)).copy()
