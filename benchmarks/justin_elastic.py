@@ -4,9 +4,10 @@ The product's own effects, fitted as the `auto` job would fit them once chosen (
 folds, then the causes jointly): joint compliance on the converter's guessed masses, + the lateral (bearing)
 compliance of every joint, + the mass data identified under both (diagnose._identify_masses). Split s is
 `split_70_30(poses, seed=s)` over recorded poses (both hands of a pose on the same side): s = 0 is
-benchmarks/real_cells.py's split, 1000 + k the k-th split of benchmarks/real_diagnosis.py.
+benchmarks/real_cells.py's split, 1000 + k the k-th split of benchmarks/real_diagnosis.py. --blind adds the
+blind diagnosis (`diagnose` on the calibration part, 5-10 CPU minutes per split) as the last row.
 
-    .venv/bin/python -m benchmarks.justin_elastic [--splits 0 1000 1001]
+    .venv/bin/python -m benchmarks.justin_elastic [--splits 0 1000 1001] [--blind]
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from calib_core.identify import evaluate  # noqa: E402
 from calib_core.select import select_geometry  # noqa: E402
 
 
-def run(split: int) -> list[tuple[str, dict, float]]:
+def run(split: int, blind: bool = False) -> list[tuple[str, dict, float]]:
     _, model, meas, groups = load("dlr_agile_justin", SHARED_DATASETS)
     ids = np.unique(groups)
     cal, test = split_70_30(len(ids), seed=split)
@@ -50,16 +51,23 @@ def run(split: int) -> list[tuple[str, dict, float]]:
     masses = DG._identify_masses(cur, list(chosen), [], model, train, fit, notes)
     out.append(("+ mass data identified under both" + ("" if notes else " (not kept: held-out folds object)"),
                 evaluate(masses, held), time.time() - t0))
+    if blind:
+        t0 = time.time()
+        d = DG.diagnose(model, train)
+        named = "; ".join(f"{f['kind']} {','.join(f['joints'])}" for f in d.findings)
+        print(f"split {split}: blind diagnosis named: {named}", flush=True)
+        out.append(("blind diagnosis (`diagnose`, the causes it names)", evaluate(d.calibration, held), time.time() - t0))
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--splits", type=int, nargs="+", default=[0, 1000, 1001])
+    ap.add_argument("--blind", action="store_true", help="also run the blind diagnosis on each split")
     args = ap.parse_args()
     rows = {}
     for s in args.splits:
-        for label, ev, sec in run(s):
+        for label, ev, sec in run(s, args.blind):
             rows.setdefault(label, []).append((s, ev, sec))
             print(f"split {s}: {label}: held-out mean {ev['mean_mm']:.2f} / RMS {ev['rms_mm']:.2f} / max "
                   f"{ev['max_mm']:.2f} mm ({sec:.0f} s)", flush=True)

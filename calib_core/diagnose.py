@@ -47,7 +47,8 @@ MIN_EXCESS_FRACTION = 0.1
 """A named cause must remove at least this fraction of the held-out mean square error above the floor;
 smaller shares are what a wrong cause picks up from a true one outside the vocabulary."""
 NAMED_SHARE = 0.4
-"""A named cause must explain at least this share of what a smooth joint-space field explains."""
+"""A named cause must explain at least this share of what a smooth joint-space field explains, both counted
+beyond what their degrees of freedom explain of pure noise."""
 LOOKALIKE = 0.8
 MAX_LOOKALIKES = 4
 INDISTINGUISHABLE = 1.02
@@ -105,6 +106,7 @@ class Candidate:
     log_p: float
     F: float
     explained: float  # fraction of the weighted residual sum of squares it explains
+    beyond_chance: float  # the same less the share its degrees of freedom would explain of pure noise
     bic: float  # Bayesian information criterion of the model with it: ranks candidates past p underflow
     effect_rms_mm: float  # RMS of the part of its displacement the current model cannot absorb
     regressor: np.ndarray
@@ -252,8 +254,11 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
            alpha: float) -> tuple[list[Candidate], float]:
     """Score every candidate by the F-test of adding it to the current model (linearised at its solution).
 
-    Also returns the share of the residual a smooth joint-space field (ridge) explains: a named cause
-    that explains far less than the field is only picking up part of a broader structure."""
+    Also returns the share of the residual a smooth joint-space field (ridge) explains beyond chance (less the
+    share it fits of pure noise, trace(H^2) / dof of its hat matrix H): a named cause that explains far less
+    than the field beyond chance is only picking up part of a broader structure. Without the correction a field
+    of a few hundred effective parameters "explains" 75 % of a residual that is mostly noise, and a real cause
+    half the noise's size is thrown away."""
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
@@ -285,7 +290,8 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
         res_mm = r.reshape(-1, 3) * sigma[:, None]
         out.append(Candidate(
             effect=e, label=e.label(model), p_value=float(np.exp(log_p)), log_p=log_p, F=float(F),
-            explained=drss / rss, bic=m * np.log(max(rss - drss, 1e-300) / m) + k_test * np.log(m),
+            explained=drss / rss, beyond_chance=drss / rss - k_test / (m - p),
+            bic=m * np.log(max(rss - drss, 1e-300) / m) + k_test * np.log(m),
             effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
             regressor=b.regressor, regressor_label=b.regressor_label,
             projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
@@ -294,7 +300,9 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     Cp = Cw - Q @ (Q.T @ Cw)
     ridge = np.eye(Cp.shape[1]) / field.prior_std**2
     fit = Cp @ np.linalg.solve(Cp.T @ Cp + ridge, Cp.T @ r)
-    return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss
+    s2 = np.linalg.svd(Cp, compute_uv=False) ** 2
+    chance = float(np.sum((s2 / (s2 + 1.0 / field.prior_std**2)) ** 2))  # E|H e|^2 / sigma^2 = trace(H^2)
+    return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss - chance / (m - p)
 
 
 def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
@@ -801,9 +809,10 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             who = {"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
                    "form": c.label}
             broad = isinstance(c.effect, SessionStep) or len(c.effect.joints) > 1  # spread over the arm already
-            if c.explained < NAMED_SHARE * field_share and not broad:
-                rejected.append({**who, "why": f"explains {100 * c.explained:.0f} % of the residual where a smooth "
-                                               f"field explains {100 * field_share:.0f} %: part of a broader structure"})
+            if c.beyond_chance < NAMED_SHARE * field_share and not broad:
+                rejected.append({**who, "why": f"explains {100 * c.beyond_chance:.0f} % of the residual beyond chance "
+                                               f"where a smooth field explains {100 * field_share:.0f} %: part of a "
+                                               f"broader structure"})
                 continue
             try:
                 trial = fit(chosen + [c.effect], x_ref)
