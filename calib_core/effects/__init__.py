@@ -49,11 +49,13 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
             if len(bent) > 1:
                 out.append(LateralJointCompliance(tuple(bent)))
         else:
-            notes.append("the model has no masses: link_deflection needs mass data and is not tested (the "
-                         "measured torques drive the joint causes)")
+            notes.append("the model has no masses: a link's bending needs mass data and is not tested; the joints' "
+                         "lateral compliance (link_deflection) is tested with the load identified from the data, the "
+                         "measured torques drive the joint causes")
     else:
         notes.append("the model has no masses: gravity loads are identified from the data (joint_compliance, "
-                     "backlash); link_deflection needs mass data and is not tested")
+                     "backlash, and the joints' lateral compliance as link_deflection); a link's bending needs mass "
+                     "data and is not tested")
     out += [CyclicJointError((j,), h) for j in moving if not model.prismatic[j] for h in HARMONICS]
     out += [JointScale((j,)) for j in moving]
     out += [AxisStraightness((j,)) for j in moving if model.prismatic[j]]
