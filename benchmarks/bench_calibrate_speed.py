@@ -9,6 +9,12 @@ skips our model-error reweighting (one fit per candidate less), so it does a lit
 Prints a markdown table (for docs/RESULTS.md): median of `--runs` calls per data set, and the peer on the first.
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python -m benchmarks.bench_calibrate_speed [--seeds 10] [--runs 10] [--no-peer]
+
+`--same-as DIR` instead checks that a speed-up changed no choice: the selection on 23 cases (10 spray7 and 3 arm6
+twins, Huber, 1 mm noise, 8-40 poses) run by this tree and by the tree at DIR (e.g. an earlier commit,
+`git archive <commit> | tar -x -C DIR`), each in a process of its own; prints whether the chosen model, best
+candidate, free set and prior agree on every case, and the largest differences of every candidate's held-out
+RMS (relative) and of the chosen model's parameters.
 """
 from __future__ import annotations
 
@@ -17,8 +23,12 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import json  # noqa: E402
 import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.optimize import least_squares as scipy_least_squares  # noqa: E402
@@ -101,12 +111,63 @@ def run(seeds: int = 10, runs: int = 10, peer: bool = True) -> list[dict]:
     return out
 
 
+CASES = r"""
+import json, sys
+import numpy as np
+import calib_core
+from calib_core import Twin, parse_model
+from calib_core.robots import arm6, spray7
+from calib_core.select import select_geometry
+sp, a6 = parse_model(spray7()), parse_model(arm6())
+cases = ([("spray7", sp, s, 150, None, None) for s in range(10)] + [("arm6", a6, s, 150, None, None) for s in range(3)]
+         + [("spray7-huber", sp, 100 + s, 150, "huber", None) for s in range(3)]
+         + [("spray7-1mm", sp, 200 + s, 150, None, 1.0) for s in range(3)]
+         + [(f"spray7-{n}poses", sp, 300 + n, n, None, None) for n in (8, 15, 25, 40)])
+out = []
+for name, m, seed, n, loss, noise in cases:
+    meas = Twin(m, seed).measure(n=n)
+    if noise:
+        meas.points = meas.points + np.random.default_rng(seed).normal(0, noise, meas.points.shape)
+        meas.sigma = np.full(meas.n_poses, noise)
+    s = select_geometry(m, meas, loss=loss)
+    out.append({"case": f"{name}/{seed}/{n}", "x": s.calibration.x.tolist(),
+                "choice": [s.chosen_label, s.best_label, s.prior_scale, s.calibration.free.tolist()],
+                "rms": [r["holdout_rms_mm"] for r in s.table]})
+assert calib_core.__file__.startswith(sys.argv[1]), calib_core.__file__
+json.dump(out, sys.stdout)
+"""
+"""The 23 cases of the equivalence check, run in a child process with a tree first on its path: JSON per case."""
+
+
+def selections(tree: Path) -> list[dict]:
+    """The 23 cases' selections made by the calib_core of `tree` (in a process of its own)."""
+    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1")
+    return json.loads(subprocess.run([sys.executable, "-c", CASES, str(tree)], env=env, cwd=tree, check=True,
+                                     capture_output=True, text=True).stdout)
+
+
+def same_as(other: Path) -> None:
+    """Print whether this tree's selections agree with those of the tree at `other`."""
+    ours, theirs = selections(Path(__file__).resolve().parents[1]), selections(other.resolve())
+    differ = [a["case"] for a, b in zip(ours, theirs) if a["choice"] != b["choice"]]
+    rms = max(abs(u - v) / v for a, b in zip(ours, theirs) for u, v in zip(a["rms"], b["rms"])
+              if u is not None and v is not None)
+    x = max(abs(u - v) / max(1.0, abs(v)) for a, b in zip(ours, theirs) for u, v in zip(a["x"], b["x"]))
+    print(f"{len(ours)} cases against {other}: chosen model, best candidate, free set and prior "
+          f"{'identical on all' if not differ else 'DIFFERENT on ' + ', '.join(differ)}; largest relative difference "
+          f"of a candidate's held-out RMS {rms:.1e}, of a chosen parameter {x:.1e} (mm, rad; relative above 1)"
+          + ("; identical to the bit" if ours == theirs else ""))
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--runs", type=int, default=10)
     ap.add_argument("--no-peer", action="store_true")
+    ap.add_argument("--same-as", type=Path, metavar="DIR", help="check the choices against the tree at DIR instead")
     a = ap.parse_args()
+    if a.same_as:
+        return same_as(a.same_as)
     rows = run(a.seeds, a.runs, not a.no_peer)
     print("| robot | twin seed | poses | calibrate geometric, median (ms) | CPU (ms) | chosen "
           "| scipy FD selection (ms) | ratio |")

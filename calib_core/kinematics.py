@@ -8,6 +8,7 @@ R0 is a fixed reference rotation (from a rigid pre-alignment) so that the identi
 """
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 from dataclasses import dataclass
@@ -123,7 +124,15 @@ def _rz(a: float) -> np.ndarray:
 
 def base_rotation(base: np.ndarray, R0: np.ndarray) -> np.ndarray:
     """Rotation of the base in the measurement frame: R0 Rz(rz) Ry(ry) Rx(rx)."""
-    return R0 @ _rz(base[5]) @ _ry(base[4]) @ _rx(base[3])
+    return _base_frame(base, R0)[0]
+
+
+def _base_frame(base: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The base rotation R0 Rz(rz) Ry(ry) Rx(rx) and the world axes (3 which, 3) its rx, ry and rz turn about (rx
+    about the twice-turned x), from the same products."""
+    Rz = R0 @ _rz(base[5])
+    Rzy = Rz @ _ry(base[4])
+    return Rzy @ _rx(base[3]), np.array([Rzy[:, 0], Rz[:, 1], R0[:, 2]])
 
 
 def _per_setup_R0(R0, S: int) -> np.ndarray:
@@ -163,13 +172,57 @@ def _static(model: RobotModel) -> _Static:
 
 
 def _cross_into(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b over the last axis (broadcasting) written into out: the arithmetic of _cross, without its stack."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    out[..., 0] = a1 * b2 - a2 * b1
-    out[..., 1] = a2 * b0 - a0 * b2
-    out[..., 2] = a0 * b1 - a1 * b0
+    """a x b over the first axis (vectors stored components first, broadcasting over the rest) written into out."""
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
     return out
+
+
+def _row_parameters(g: np.ndarray) -> list[tuple]:
+    """Per row (a, alpha, d, theta, beta) from the geometry block (n, 5) of one parameter vector, as floats; of
+    B vectors (B, n, 5), a parameter equal in all of them is a float too, else its values as (B, 1) (they then
+    broadcast against a batch of poses (3, B, N))."""
+    if g.ndim == 2:
+        return g.tolist()
+    same = (g == g[0]).all(0).tolist()
+    return [tuple(v if u else g[:, j, k, None] for k, (v, u) in enumerate(zip(row, same[j])))
+            for j, row in enumerate(g[0].tolist())]
+
+
+def _moves(v) -> bool:
+    """Whether a motion by v (a float, or values per parameter vector that differ) can change a frame: a float 0
+    adds exact zeros and is skipped."""
+    return not isinstance(v, float) or v != 0.0
+
+
+def _cos_sin(v):
+    """cos and sin of a float (math) or of values per parameter vector (numpy)."""
+    if isinstance(v, float):
+        return math.cos(v), math.sin(v)
+    return np.cos(v), np.sin(v)
+
+
+def _step(out: np.ndarray, o: np.ndarray, length, axis: np.ndarray) -> np.ndarray:
+    """o + length * axis written into out (a float length 0 copies o: it would add exact zeros)."""
+    if not _moves(length):
+        out[...] = o
+        return out
+    np.multiply(length, axis, out=out)
+    out += o
+    return out
+
+
+def _first(a: np.ndarray, k: int = 1) -> np.ndarray:
+    """Components-first view of an array in the poses' layout: (..., N, 3) -> (3, ..., N); for rotations (k = 2),
+    (..., N, 3, 3) [component, axis] -> (3, 3, ..., N) [axis, component]."""
+    return a.transpose(*range(a.ndim - 1, a.ndim - k - 1, -1), *range(a.ndim - k))
+
+
+def _last(a: np.ndarray, rows: int = 0, k: int = 1) -> np.ndarray:
+    """The poses' layout of a components-first array after its `rows` leading axes, contiguous: (rows, 3, ..., N)
+    -> (rows, ..., N, 3); for rotations (k = 2), (rows, 3, 3, ..., N) [axis, component] -> (rows, ..., N, 3, 3)."""
+    return np.ascontiguousarray(a.transpose(*range(rows), *range(rows + k, a.ndim), *range(rows + k - 1, rows - 1, -1)))
 
 
 class Chain:
@@ -178,10 +231,19 @@ class Chain:
     Stores per row the world axes and origins at which each elementary MD-H motion acts, over a tree
     (each row follows its parent's frame), for each pose's target and setup (`labels`, default all 0).
 
-    Speed (an identification evaluates the chain a hundred times): a frame is carried as its three axes (columns)
-    and the elementary rotations are written out per column, not as (N, 3, 3) matrix products of a built matrix;
-    a rotation by a zero angle or a translation by zero length is skipped (it would add exact zeros); what
-    depends on the model alone is computed once per model (_Static).
+    Speed (an identification evaluates the chain a hundred times): vectors are stored components first, a row's
+    vector as one contiguous (3, N) block, so every numpy call is a long loop over the poses (with (N, 3) it is N
+    loops of 3, and broadcasting a per-pose cosine over the components costs several times more) and results are
+    written in place; a frame is carried as its three axes and the elementary rotations are written out per axis,
+    not as (N, 3, 3) matrix products of a built matrix; a rotation by a zero angle or a translation by zero length
+    is skipped (it would add exact zeros); what depends on the model alone is computed once per model (_Static).
+    Every element is the same arithmetic as in the poses' layout. The per-row frames in the (n, N, 3) layout the
+    effects use (x_prev, ..., R) are made on first use.
+
+    x may also be B parameter vectors (B, P) at the same poses (the folds of a cross-validation, solved together):
+    every array then has a leading (B,) before the poses (p: (B, N, 3), jacobian(): (B, N, 3, P)), and one pass
+    costs about a third of B single passes. A parameter equal in all B vectors is still a float, so each vector's
+    frames are the arithmetic of its own chain, to the bit.
     """
 
     def __init__(self, model: RobotModel, x: np.ndarray, q: np.ndarray, R0: np.ndarray | None = None,
@@ -190,93 +252,135 @@ class Chain:
         st = _static(model)
         q = np.atleast_2d(np.asarray(q, dtype=float))
         N = q.shape[0]
-        lay = layout(model, x)
+        lead = x.shape[:-1]  # () or (B,): B parameter vectors at the same poses
+        lay = layout(model, x[0] if lead else x)
         S, T = lay.n_setups, lay.n_targets
-        g = x[lay.geometry].reshape(n, 5)
-        bases = x[lay.bases].reshape(S, 6)
-        tools = x[lay.tools].reshape(T, 3)
+        bases = x[..., lay.bases].reshape(*lead, S, 6)
+        tools = x[..., lay.tools].reshape(*lead, T, 3)
         R0s = _per_setup_R0(R0, S)
-        Rbs = np.array([base_rotation(bases[s], R0s[s]) for s in range(S)])
+        self._frames = [_base_frame(b, R0s[i % S]) for i, b in enumerate(bases.reshape(-1, 6))]
+        Rbs = np.array([R for R, _ in self._frames]).reshape(*lead, S, 3, 3)
         if labels is None:
             setup = target = np.zeros(N, int)
         else:
             setup, target = labels.setup, labels.target
         self.model, self.x, self.N, self.layout, self.labels = model, x, N, lay, labels
         self.R0, self.Rbs, self.bases, self.setup, self.target = R0s[0] if S == 1 else R0s, Rbs, bases, setup, target
-        self.Rb = Rbs[0] if S == 1 else Rbs[setup]  # (3, 3) or per pose (N, 3, 3)
-        self.base_origin = bases[0, :3] if S == 1 else bases[setup, :3]
-        # the base frame's axes and origin: (3,) vectors shared by every pose, or per pose (N, 3)
-        Rbase = self.Rb
-        base_axes = (Rbase[..., 0], Rbase[..., 1], Rbase[..., 2])
-        obase = self.base_origin
-        # per row: x axis / origin of frame i-1, z axis / origin after Tx(a), y axis / origin after Tz(d)
-        self.x_prev = np.empty((n, N, 3))
-        self.o_prev = np.empty((n, N, 3))
-        self.z_axis = np.empty((n, N, 3))
-        self.o_theta = np.empty((n, N, 3))
-        self.y_beta = np.empty((n, N, 3))
-        self.o_beta = np.empty((n, N, 3))
-        self.R = np.empty((n, N, 3, 3))  # rotation of each joint frame
-        for j, (a, alpha, d, theta, beta) in enumerate(g.tolist()):
+        self.Rb = Rbs[..., 0, :, :] if S == 1 else Rbs[..., setup, :, :]  # (3, 3) or per pose (N, 3, 3)
+        self.base_origin = bases[..., 0, :3] if S == 1 else bases[..., setup, :3]
+        # the base frame's axes and origin, components first: (3, 1) shared by every pose or (3, N) per pose
+        Rbase, obase = _first(self.Rb, 2), _first(self.base_origin)
+        if S == 1:
+            Rbase, obase = Rbase[..., None], obase[..., None]
+        # per row, components first (n, 3, N): x axis / origin of frame i-1, z axis / origin after Tx(a), origin
+        # after Tz(d); the rotation of each joint frame as its axes (n, 3, 3, N) [axis, component]; y_beta is its y
+        self._x_prev, self._o_prev, self._z_axis, self._o_theta, self._o_beta = np.empty((5, n, 3, *lead, N))
+        self._R = np.empty((n, 3, 3, *lead, N))
+        self._y_beta = self._R[:, 1]
+        qT = np.ascontiguousarray(q.T)  # (n, N): each row's values contiguous
+        for j, (a, alpha, d, theta, beta) in enumerate(_row_parameters(x[..., lay.geometry].reshape(*lead, n, 5))):
             pj = st.parents[j]
             if pj < 0:
-                (X, Y, Z), o = base_axes, obase
+                (X, Y, Z), o = Rbase, obase
             else:
-                Rp = self.R[pj]
-                X, Y, Z, o = Rp[:, :, 0], Rp[:, :, 1], Rp[:, :, 2], self.o_beta[pj]
+                X, Y, Z = self._R[pj]
+                o = self._o_beta[pj]
             pre = st.pre[j]
             if pre is not None:  # o + R t, R P
                 t, P = pre
                 o = o + (X * t[0] + Y * t[1] + Z * t[2])
                 X, Y, Z = (X * P[0, 0] + Y * P[1, 0] + Z * P[2, 0], X * P[0, 1] + Y * P[1, 1] + Z * P[2, 1],
                            X * P[0, 2] + Y * P[1, 2] + Z * P[2, 2])
-            self.x_prev[j] = X
-            self.o_prev[j] = o
-            if alpha != 0.0:  # R Rx(alpha): y and z turn about x
-                ca, sa = math.cos(alpha), math.sin(alpha)
-                Y, Z = Y * ca + Z * sa, Z * ca - Y * sa
-            o1 = o + a * X if a != 0.0 else o
+            self._x_prev[j] = X
+            self._o_prev[j] = o
+            (x_j, y_j, z_j), z = self._R[j], self._z_axis[j]
+            if _moves(alpha):  # R Rx(alpha): y and z turn about x
+                ca, sa = _cos_sin(alpha)
+                Y, Z = Y * ca + Z * sa, np.subtract(Z * ca, Y * sa, out=z)
+            else:
+                z[...] = Z
+            o1 = _step(self._o_theta[j], o, a, X)  # o + a x
             if st.revolute_q[j]:
-                th = theta + q[:, j]
-                c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+                th = theta + qT[j]
+                c, s = np.cos(th), np.sin(th)
             else:
-                c, s = math.cos(theta), math.sin(theta)
-            xa = c * X + s * Y
-            ya = c * Y - s * X
-            if st.prismatic_q[j]:
-                o2 = o1 + (d + q[:, j])[:, None] * Z
+                c, s = _cos_sin(theta)
+            if _moves(beta):
+                xa = c * X + s * Y
             else:
-                o2 = o1 + d * Z if d != 0.0 else o1
-            self.z_axis[j] = Z
-            self.o_theta[j] = o1
-            self.y_beta[j] = ya
-            self.o_beta[j] = o2
-            Rj = self.R[j]
-            if beta != 0.0:  # R2 Ry(beta)
-                cb, sb = math.cos(beta), math.sin(beta)
-                Rj[:, :, 0] = xa * cb - Z * sb
-                Rj[:, :, 1] = ya
-                Rj[:, :, 2] = xa * sb + Z * cb
+                xa = np.multiply(c, X, out=x_j)
+                xa += s * Y  # c x + s y
+            np.multiply(c, Y, out=y_j)
+            y_j -= s * X  # c y - s x
+            _step(self._o_beta[j], o1, d + qT[j] if st.prismatic_q[j] else d, z)  # o1 + d z
+            if _moves(beta):  # R2 Ry(beta)
+                cb, sb = _cos_sin(beta)
+                np.subtract(xa * cb, z * sb, out=x_j)
+                np.add(xa * sb, z * cb, out=z_j)
             else:
-                Rj[:, :, 0] = xa
-                Rj[:, :, 1] = ya
-                Rj[:, :, 2] = Z
+                z_j[...] = z
         rows = st.target_rows
         self.end_row = rows[target]  # (N,) the row each pose's target sits on
-        if T == 1 and len(rows) == 1:  # every pose on one row: plain copies instead of fancy indexing
+        if T == 1 and len(rows) == 1:  # every pose on one row
             r = int(rows[0])
-            self.o_end = self.o_beta[r].copy()
-            self.R_end = self.R[r].copy()
+            self._o_end, self._R_end = self._o_beta[r], self._R[r]
         else:
             idx = np.arange(N)
-            self.o_end = self.o_beta[self.end_row, idx]
-            self.R_end = self.R[self.end_row, idx]
-        self.p = self.o_end + np.einsum("nab,nb->na", self.R_end, tools[target])  # (N, 3) in the measurement frame
+            self._o_end = np.moveaxis(self._o_beta[self.end_row, ..., idx], 0, -1)
+            self._R_end = np.moveaxis(self._R[self.end_row, ..., idx], 0, -1)
+        # (N, 3) in the measurement frame; the lever summed by einsum in the poses' layout, as it always was
+        self.p = self.o_end + np.einsum("...ab,...b->...a", self.R_end, tools[..., target, :])
+        self._p = np.ascontiguousarray(_first(self.p))
         self.on_path = st.ancestors[self.end_row].T  # (n, N): row j carries pose i's target
+
+    @functools.cached_property
+    def x_prev(self) -> np.ndarray:
+        """(n, N, 3) x axis of frame i-1 (after the row's constant transform)."""
+        return _last(self._x_prev, 1)
+
+    @functools.cached_property
+    def o_prev(self) -> np.ndarray:
+        """(n, N, 3) origin of frame i-1, mm."""
+        return _last(self._o_prev, 1)
+
+    @functools.cached_property
+    def z_axis(self) -> np.ndarray:
+        """(n, N, 3) joint axis z_i."""
+        return _last(self._z_axis, 1)
+
+    @functools.cached_property
+    def o_theta(self) -> np.ndarray:
+        """(n, N, 3) origin after Tx(a), on the joint axis, mm."""
+        return _last(self._o_theta, 1)
+
+    @functools.cached_property
+    def y_beta(self) -> np.ndarray:
+        """(n, N, 3) y axis about which beta turns."""
+        return _last(self._y_beta, 1)
+
+    @functools.cached_property
+    def o_beta(self) -> np.ndarray:
+        """(n, N, 3) origin of frame i, mm."""
+        return _last(self._o_beta, 1)
+
+    @functools.cached_property
+    def R(self) -> np.ndarray:
+        """(n, N, 3, 3) rotation of each joint frame in the measurement frame."""
+        return _last(self._R, 1, 2)
+
+    @functools.cached_property
+    def o_end(self) -> np.ndarray:
+        """(N, 3) origin of the frame each pose's target sits on, mm."""
+        return _last(self._o_end)
+
+    @functools.cached_property
+    def R_end(self) -> np.ndarray:
+        """(N, 3, 3) rotation of the frame each pose's target sits on."""
+        return _last(self._R_end, 0, 2)
 
     def joint_jacobian(self) -> np.ndarray:
         """dp/dq for every row, shape (N, 3, n): z x (p - o) for revolute, z for prismatic, 0 for fixed rows
-        and rows not on the way to the pose's target."""
+        and rows not on the way to the pose's target (one parameter vector)."""
         st = _static(self.model)
         rev = _cross(self.z_axis, self.p[None] - self.o_theta)
         pri = self.z_axis
@@ -285,39 +389,49 @@ class Chain:
         return np.moveaxis(J, 0, 2)
 
     def jacobian(self) -> np.ndarray:
-        """dp/dx for the full parameter vector, shape (N, 3, P), x in mm and rad (layout()).
+        """dp/dx for the full parameter vector, shape (N, 3, P), x in mm and rad (layout()); (B, N, 3, P) for B
+        parameter vectors.
 
-        Filled block by block into one (P, N, 3) array (returned as its (N, 3, P) view)."""
-        n, N, p, lay = self.model.n_joints, self.N, self.p, self.layout
-        J = np.empty((lay.size, N, 3))
-        cols = J[: 5 * n].reshape(n, 5, N, 3)
-        cols[:, 0] = self.x_prev  # a_{i-1}: translation along x_{i-1}
-        _cross_into(cols[:, 1], self.x_prev, p[None] - self.o_prev)  # alpha_{i-1}
-        cols[:, 2] = self.z_axis  # d_i
-        _cross_into(cols[:, 3], self.z_axis, p[None] - self.o_theta)  # theta_i
-        _cross_into(cols[:, 4], self.y_beta, p[None] - self.o_beta)  # beta_i
+        Filled block by block into one array through its components-first view (3, P, [B,] N) and returned as its
+        (N, 3, P) view: for one vector the array is (P, N, 3), the layout it always had (what is computed from it
+        sums in the same order); for B vectors it is components first, which the folds' gathers read fastest."""
+        n, N, lay = self.model.n_joints, self.N, self.layout
+        lead = self._p.shape[1:-1]
+        if lead:
+            J = np.empty((3, lay.size, *lead, N))
+            out = J.transpose(1, *range(2, J.ndim), 0)  # (P, B, N, 3)
+        else:
+            out = np.empty((lay.size, N, 3))
+            J = _first(out)
+        cols = J[:, : 5 * n].reshape(3, n, 5, *lead, N)
+        p = self._p[:, None]
+        x_prev, z_axis = self._x_prev.swapaxes(0, 1), self._z_axis.swapaxes(0, 1)  # (3, n, N)
+        cols[:, :, 0] = x_prev  # a_{i-1}: translation along x_{i-1}
+        _cross_into(cols[:, :, 1], x_prev, p - self._o_prev.swapaxes(0, 1))  # alpha_{i-1}
+        cols[:, :, 2] = z_axis  # d_i
+        _cross_into(cols[:, :, 3], z_axis, p - self._o_theta.swapaxes(0, 1))  # theta_i
+        _cross_into(cols[:, :, 4], self._y_beta.swapaxes(0, 1), p - self._o_beta.swapaxes(0, 1))  # beta_i
         if not _static(self.model).serial:
-            cols *= self.on_path[:, None, :, None]
+            cols *= self.on_path.reshape(n, 1, *(1,) * len(lead), N)
+        turns = np.array([axes for _, axes in self._frames]).reshape(*lead, lay.n_setups, 3, 3)
         for s in range(lay.n_setups):
-            base, R0 = self.bases[s], (self.R0 if lay.n_setups == 1 else self.R0[s])
-            rz_axis = R0[:, 2]
-            ry_axis = (R0 @ _rz(base[5]))[:, 1]
-            rx_axis = (R0 @ _rz(base[5]) @ _ry(base[4]))[:, 0]
-            dp = p - base[:3]
-            b = J[lay.base(s)]
-            b[:3] = 0.0
-            b[0, :, 0] = b[1, :, 1] = b[2, :, 2] = 1.0
-            _cross_into(b[3], rx_axis, dp)
-            _cross_into(b[4], ry_axis, dp)
-            _cross_into(b[5], rz_axis, dp)
+            axes = turns[..., s, :, :]  # ([B,] 3, 3): the world axes of rx, ry, rz
+            rx_axis, ry_axis, rz_axis = (_first(axes[..., k, :])[..., None] for k in range(3))  # (3, [B,] 1)
+            dp = self._p - _first(self.bases[..., s, :3])[..., None]
+            b = J[:, lay.base(s)]
+            b[:, :3] = 0.0
+            b[0, 0] = b[1, 1] = b[2, 2] = 1.0
+            _cross_into(b[:, 3], rx_axis, dp)
+            _cross_into(b[:, 4], ry_axis, dp)
+            _cross_into(b[:, 5], rz_axis, dp)
             if lay.n_setups > 1:
-                b *= (self.setup == s)[None, :, None]
+                b *= self.setup == s
         for t in range(lay.n_targets):
-            tc = J[lay.tool(t)]
-            tc[:] = np.moveaxis(self.R_end, 2, 0)  # (3, N, 3)
+            tc = J[:, lay.tool(t)]
+            tc[:] = self._R_end.swapaxes(0, 1)  # d p_c / d tool_k: axis k's component c
             if lay.n_targets > 1:
-                tc *= (self.target == t)[None, :, None]
-        return np.moveaxis(J, 0, 2)
+                tc *= self.target == t
+        return out.transpose(*range(1, out.ndim), 0)
 
 
 _EYE4 = np.eye(4)

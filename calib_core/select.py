@@ -13,13 +13,16 @@ held-out RMS is within the fold-to-fold standard error of the best is chosen. Re
 candidate, so the chosen model's held-out RMS is never worse than registration alone; when registration is
 chosen, calibrating the geometry does not help on this data and `helps` is False.
 
-Speed (a 150-pose job is meant to answer in well under a second): every candidate is exactly
+Speed (a 150-pose job is meant to answer in well under 150 ms): every candidate is exactly
 `identify(model, meas, free=..., prior_scale=..., folds=k)`, but the candidates share what does not depend on
 them: the pre-alignment, the identifiability analysis of the pose set and a memo of chain evaluations
 (point and Jacobian at every pose, per parameter vector). Each candidate's fit begins at the previous
 candidate's solution (the neighbouring prior strength or the next smaller model), and every fold at the
 candidate's full-data solution, so LM takes a step or two to the same convergence test instead of the
 whole way from nominal; the answers agree with separate identify() calls to the convergence tolerance.
+The folds of all candidates are solved together once every candidate is fitted (identify.held_out): each
+round evaluates the chain once for all of them, a batch of parameter vectors in one pass, and every fold
+takes exactly the steps it would take alone (the answer is the same to the bit).
 """
 from __future__ import annotations
 
@@ -28,8 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import kinematics as K
-from .identify import (DISTINCT_DECIMALS, Calibration, ChainEvaluations, _calibrate, _select, assess, fold_ids,
-                       identify, prealign)
+from .identify import (DISTINCT_DECIMALS, Calibration, ChainEvaluations, Folds, _calibrate, _select, assess,
+                       fold_ids, held_out, identify, prealign)
 from .io import Measurements
 from .model import RobotModel
 
@@ -99,16 +102,18 @@ class _Shared:
         J = self.evals(self.x0)[1].reshape(-1, len(self.x0))
         self.ident = assess(model, meas.joints, J, self.names, meas.setup_names)
 
-    def identify(self, free, idx, *, loss, folds, prior_scale, start=None) -> Calibration:
+    def identify(self, free, idx, *, loss, folds, prior_scale, start=None) -> tuple[Calibration, Folds | None]:
+        """The candidate identified on all the data, and its cross-validation still to be solved (held_out, with
+        the other candidates'); None when the calibration already carries it."""
         model, meas = self.model, self.meas
         if self.ident is None or 3 * meas.n_poses <= len(idx):  # refused: identify() says why
-            return identify(model, meas, free=free, loss=loss, folds=folds, prior_scale=prior_scale)
-        cal, first = _calibrate(model, meas, self.sigma, self.x0, self.R0, self.ident, idx, loss=loss, folds=folds,
+            return identify(model, meas, free=free, loss=loss, folds=folds, prior_scale=prior_scale), None
+        cal, first = _calibrate(model, meas, self.sigma, self.x0, self.R0, self.ident, idx, loss=loss, folds=1,
                                 prior_scale=prior_scale, start=None if start is None else start[idx],
                                 evals=self.evals)
         self.last_fit = self.x0.copy()
         self.last_fit[idx] = first.x
-        return cal
+        return cal, Folds(cal.sigma_mm, idx, loss, True, prior_scale, cal.solution.x)
 
 
 def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None = None,
@@ -121,13 +126,13 @@ def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None =
     if k < 2:
         raise ValueError(f"{meas.n_poses} poses are too few to judge a model on held-out poses")
     shared = _Shared(model, meas)
-    table, cals, seen = [], {}, []
+    table, cals, seen, cvs = [], {}, [], []
     for label, free, scale in candidates(model):
         idx = _select(shared.names, shared.ident, free) if shared.ident is not None else None
         if idx is not None and any(np.array_equal(idx, i) and scale == s for i, s in seen):
             continue  # the same model as a simpler candidate (e.g. no offset is identifiable)
         try:
-            cal = shared.identify(free, idx, loss=loss, folds=k, prior_scale=scale, start=shared.last_fit)
+            cal, cv = shared.identify(free, idx, loss=loss, folds=k, prior_scale=scale, start=shared.last_fit)
         except ValueError as e:
             if label == "registration":
                 raise
@@ -135,10 +140,16 @@ def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None =
                           "holdout_rms_mm": None, "fold_se_mm": None, "skipped": str(e)})
             continue
         seen.append((cal.free, scale))
-        rms, se = _fold_stats(cal.holdout_residual_mm, k)
-        table.append({"label": label, "free": free, "prior_scale": scale, "n_parameters": int(len(cal.free)),
-                      "holdout_rms_mm": rms, "fold_se_mm": se})
+        table.append({"label": label, "free": free, "prior_scale": scale, "n_parameters": int(len(cal.free))})
         cals[label] = cal
+        if cv is not None:
+            cvs.append((cal, cv))
+    if cvs:  # every candidate's folds solved together
+        for (cal, _), d in zip(cvs, held_out(model, meas, shared.x0, shared.evals, [cv for _, cv in cvs], k)):
+            cal.holdout_residual_mm = d
+    for row in table:
+        if row["label"] in cals:
+            row["holdout_rms_mm"], row["fold_se_mm"] = _fold_stats(cals[row["label"]].holdout_residual_mm, k)
     scored = [r for r in table if r["holdout_rms_mm"] is not None]
     best = min(scored, key=lambda r: r["holdout_rms_mm"])
     limit = best["holdout_rms_mm"] + best["fold_se_mm"]

@@ -18,7 +18,7 @@ falsely tiny std.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Generator
 
 import numpy as np
 
@@ -75,8 +75,35 @@ def _robust_weights(u: np.ndarray, loss: str) -> np.ndarray:
     return 1.0 / (1.0 + (u / k) ** 2)
 
 
-def least_squares(
-    residual_jac: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+def least_squares(residual_jac: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0: np.ndarray,
+                  sigma: np.ndarray, **options) -> Solution:
+    """Minimise sum_i w_i |r_i / sigma_i|^2 + |(x - prior) / prior_std|^2.
+
+    residual_jac(x) -> (r (N, 3) measured - predicted, J (N, 3, p) = d predicted / dx).
+    sigma (N,) is the 1-sigma per-coordinate uncertainty of each pose, same length unit as r.
+    options: those of `lm_steps` (prior, robust loss, tolerances, covariance, damping)."""
+    return solve_together([lm_steps(x0, sigma, **options)], lambda asks: [residual_jac(x) for _, x in asks])[0]
+
+
+def solve_together(runs: list[Generator], evaluate: Callable[[list], list]) -> list[Solution]:
+    """Independent `lm_steps` runs driven in lockstep: each round, the points all unfinished runs ask for are
+    evaluated by one call evaluate([(run index, x), ...]) -> [(r, J), ...] (a caller can evaluate them in one
+    vectorised pass); every run takes exactly the steps it would take alone."""
+    out: list = [None] * len(runs)
+    asks = {k: next(run) for k, run in enumerate(runs)}
+    while asks:
+        answers = evaluate(list(asks.items()))
+        nxt = {}
+        for k, rj in zip(list(asks), answers):
+            try:
+                nxt[k] = runs[k].send(rj)
+            except StopIteration as done:
+                out[k] = done.value
+        asks = nxt
+    return out
+
+
+def lm_steps(
     x0: np.ndarray,
     sigma: np.ndarray,
     *,
@@ -88,11 +115,10 @@ def least_squares(
     atol: float = 1e-14,
     covariance: bool = True,
     damping: float = 1e-4,
-) -> Solution:
-    """Minimise sum_i w_i |r_i / sigma_i|^2 + |(x - prior) / prior_std|^2.
+) -> Generator[np.ndarray, tuple[np.ndarray, np.ndarray], Solution]:
+    """Levenberg-Marquardt as a generator: yields each point x it needs evaluated, is sent (r, J) there (as
+    least_squares' residual_jac returns them), and returns the Solution (StopIteration.value).
 
-    residual_jac(x) -> (r (N, 3) measured - predicted, J (N, 3, p) = d predicted / dx).
-    sigma (N,) is the 1-sigma per-coordinate uncertainty of each pose, same length unit as r.
     Converged when the next step would lower the weighted cost by less than ftol * cost + atol.
     `damping` is the initial Marquardt damping (relative to the unit diagonal of the scaled normal matrix): a
     start already near the optimum (a warm start) takes Gauss-Newton steps at once with a small one.
@@ -108,19 +134,25 @@ def least_squares(
     lam_diag = (1.0 / np.asarray(prior_std) ** 2) if reg else np.zeros(p)
     prior = x0 if prior is None else prior
 
-    def normal_eq(x, w):
-        r, J = residual_jac(x)
+    def root_weights(w):
+        """sqrt(w) per pose (N, 1) and the Jacobian's row weights sqrt(w) / sigma (N, 1, 1): made once per w."""
+        sq = np.sqrt(w)
+        return sq[:, None], sq[:, None, None] * inv_s[:, None, None]
+
+    def normal_eq(x, r, J):
         rw = r * inv_s[:, None]
-        sw = np.sqrt(w)[:, None, None] * inv_s[:, None, None]
         Jw = (J * sw).reshape(-1, p)
-        rww = (rw * np.sqrt(w)[:, None]).ravel()
-        cost = rww @ rww + ((x - prior) ** 2 * lam_diag).sum()
+        rww = (rw * sqw).ravel()
+        dx = x - prior
+        cost = rww @ rww + (dx**2 * lam_diag).sum()
         A = Jw.T @ Jw
-        g = Jw.T @ rww - lam_diag * (x - prior)
-        return r, rw, A, g, cost
+        g = Jw.T @ rww - lam_diag * dx
+        return rw, A, g, cost
 
     w = np.ones(len(inv_s))
-    r, rw, A, g, cost = normal_eq(x, w)
+    sqw, sw = root_weights(w)
+    r, J = yield x
+    rw, A, g, cost = normal_eq(x, r, J)
     mu = damping  # Marquardt damping, relative to the unit diagonal of the scaled normal matrix
     converged, it = False, 0
     L, eye = np.diag(lam_diag), np.eye(p)
@@ -132,23 +164,26 @@ def least_squares(
         except np.linalg.LinAlgError:
             mu *= 10
             continue
-        if not np.all(np.isfinite(step)):
+        if not np.isfinite(step).all():
             mu *= 10
             continue
         if step @ g <= ftol * cost + atol:  # predicted chi-square decrease: nothing left to gain
             converged = True
             break
-        r_new, rw_new, A_new, g_new, cost_new = normal_eq(x + step, w)
+        x_new = x + step
+        r_new, J_new = yield x_new
+        rw_new, A_new, g_new, cost_new = normal_eq(x_new, r_new, J_new)
         if not cost_new <= cost:
             mu *= 10.0
             continue
-        x, r, rw, A, g, cost = x + step, r_new, rw_new, A_new, g_new, cost_new
+        x, r, J, rw, A, g, cost = x_new, r_new, J_new, rw_new, A_new, g_new, cost_new
         mu = max(mu / 10.0, 1e-15)
         if loss is not None:
             w_new = _robust_weights(_standardised(rw), loss)
             if not np.allclose(w_new, w, atol=1e-6):
                 w = w_new
-                r, rw, A, g, cost = normal_eq(x, w)
+                sqw, sw = root_weights(w)
+                rw, A, g, cost = normal_eq(x, r, J)
     if covariance:
         cov1, undetermined, rank = _covariance(A, lam_diag, sandwich=reg)
     else:
@@ -164,7 +199,7 @@ def least_squares(
 
 def _scaled(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """S H S with S = 1 / sqrt(diag H) (1 where a column is empty): unit diagonal, unit-free."""
-    d = np.sqrt(np.clip(np.diag(H), 0.0, None))
+    d = np.sqrt(np.maximum(H.diagonal(), 0.0))
     S = 1.0 / np.where(d > 0, d, 1.0)
     return H * S[:, None] * S[None, :], S
 
