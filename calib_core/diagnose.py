@@ -865,6 +865,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
              loss: str | None = "auto", folds: int = 5, unexplained: bool = True,
              progress: Callable[[float, str], None] | None = None) -> Diagnosis:
     """Geometric fit, then the greedy search for causes; returns the extended calibration and the findings.
+    When mass data are identified under the compliances found, the search resumes on them once.
 
     loss 'auto' fits with the Huber loss when a first robust fit names outliers (they are listed), else
     with plain least squares."""
