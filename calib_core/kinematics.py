@@ -8,7 +8,6 @@ R0 is a fixed reference rotation (from a rigid pre-alignment) so that the identi
 """
 from __future__ import annotations
 
-import functools
 import math
 import weakref
 from dataclasses import dataclass
@@ -225,6 +224,23 @@ def _last(a: np.ndarray, rows: int = 0, k: int = 1) -> np.ndarray:
     return np.ascontiguousarray(a.transpose(*range(rows), *range(rows + k, a.ndim), *range(rows + k - 1, rows - 1, -1)))
 
 
+class _PosesLayout:
+    """A Chain attribute in the poses' layout, made on first use from its components-first twin `_<name>` (`_last`
+    with these `rows` and `k`) and kept: the effects read these, the chain itself never needs them."""
+
+    def __init__(self, rows: int = 0, k: int = 1):
+        self.rows, self.k = rows, k
+
+    def __set_name__(self, owner, name: str):
+        self.name = name
+
+    def __get__(self, chain, owner=None):
+        if chain is None:
+            return self
+        value = chain.__dict__[self.name] = _last(getattr(chain, "_" + self.name), self.rows, self.k)
+        return value
+
+
 class Chain:
     """Frames of every row for N poses: the one pass that both FK and Jacobian need.
 
@@ -333,50 +349,15 @@ class Chain:
         self._p = np.ascontiguousarray(_first(self.p))
         self.on_path = st.ancestors[self.end_row].T  # (n, N): row j carries pose i's target
 
-    @functools.cached_property
-    def x_prev(self) -> np.ndarray:
-        """(n, N, 3) x axis of frame i-1 (after the row's constant transform)."""
-        return _last(self._x_prev, 1)
-
-    @functools.cached_property
-    def o_prev(self) -> np.ndarray:
-        """(n, N, 3) origin of frame i-1, mm."""
-        return _last(self._o_prev, 1)
-
-    @functools.cached_property
-    def z_axis(self) -> np.ndarray:
-        """(n, N, 3) joint axis z_i."""
-        return _last(self._z_axis, 1)
-
-    @functools.cached_property
-    def o_theta(self) -> np.ndarray:
-        """(n, N, 3) origin after Tx(a), on the joint axis, mm."""
-        return _last(self._o_theta, 1)
-
-    @functools.cached_property
-    def y_beta(self) -> np.ndarray:
-        """(n, N, 3) y axis about which beta turns."""
-        return _last(self._y_beta, 1)
-
-    @functools.cached_property
-    def o_beta(self) -> np.ndarray:
-        """(n, N, 3) origin of frame i, mm."""
-        return _last(self._o_beta, 1)
-
-    @functools.cached_property
-    def R(self) -> np.ndarray:
-        """(n, N, 3, 3) rotation of each joint frame in the measurement frame."""
-        return _last(self._R, 1, 2)
-
-    @functools.cached_property
-    def o_end(self) -> np.ndarray:
-        """(N, 3) origin of the frame each pose's target sits on, mm."""
-        return _last(self._o_end)
-
-    @functools.cached_property
-    def R_end(self) -> np.ndarray:
-        """(N, 3, 3) rotation of the frame each pose's target sits on."""
-        return _last(self._R_end, 0, 2)
+    x_prev = _PosesLayout(1)  # (n, N, 3) x axis of frame i-1 (after the row's constant transform)
+    o_prev = _PosesLayout(1)  # (n, N, 3) origin of frame i-1, mm
+    z_axis = _PosesLayout(1)  # (n, N, 3) joint axis z_i
+    o_theta = _PosesLayout(1)  # (n, N, 3) origin after Tx(a), on the joint axis, mm
+    y_beta = _PosesLayout(1)  # (n, N, 3) y axis about which beta turns
+    o_beta = _PosesLayout(1)  # (n, N, 3) origin of frame i, mm
+    R = _PosesLayout(1, 2)  # (n, N, 3, 3) rotation of each joint frame in the measurement frame
+    o_end = _PosesLayout()  # (N, 3) origin of the frame each pose's target sits on, mm
+    R_end = _PosesLayout(0, 2)  # (N, 3, 3) rotation of the frame each pose's target sits on
 
     def joint_jacobian(self) -> np.ndarray:
         """dp/dq for every row, shape (N, 3, n): z x (p - o) for revolute, z for prismatic, 0 for fixed rows
