@@ -56,7 +56,7 @@ INDISTINGUISHABLE = 1.02
 MAX_FINDINGS = 6
 MAX_SPARSE = 3
 """A cause spread over several joints is named only if this many single-joint causes, found by the same search,
-do significantly worse on held-out poses (two causes on two joints can look like compliance everywhere)."""
+do no better on held-out poses (two causes on two joints can look like compliance everywhere)."""
 NOISE_LIKE = 3.0
 """A residual that follows nothing is taken for noise (the floor re-estimated) only below this multiple of
 the assumed floor; beyond it, it is reported as unexplained."""
@@ -847,8 +847,9 @@ class _Search:
 
     def _sparser(self, c: Candidate, trial: Calibration) -> bool:
         """Search on without causes spread over several joints, for at most MAX_SPARSE rounds (and fewer parameters
-        than the spread cause); take what it finds instead of the spread cause when held-out poses cannot show the
-        spread cause to be better (paired test). True if it was taken."""
+        than the spread cause); take what it finds instead of the spread cause when it is better on held-out poses.
+        True if it was taken. (Taking it whenever the spread cause was not significantly better swapped Agile
+        Justin's compliance of every joint for one joint's: 3.33 -> 4.05 mm held out.)"""
         n_spread = len(c.effect.parameter_names(self.model))
         sub = dataclasses.replace(
             self, pool=[e for e in self.pool if len(e.joints) <= 1 or isinstance(e, SessionStep)],
@@ -859,15 +860,15 @@ class _Search:
         new = sub.chosen[len(self.chosen):]
         if not new or sum(len(e.parameter_names(self.model)) for e in new) >= n_spread:
             return False
-        p, drop = holdout_gain(sub.current, trial)
-        if p <= HOLDOUT_ALPHA and drop > 0:
-            return False
         hs, ht = sub.current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
+        if hs >= ht:
+            return False
+        p, _ = holdout_gain(trial, sub.current)
         names = ", ".join(e.label(self.model) for e in new)
         self.rejected.append({"kind": c.effect.kind, "joints": [self.model.joint_names[j] for j in c.effect.joints],
-                              "form": c.label, "why": f"held-out poses do not show it better than {len(new)} "
-                                                      f"cause(s) on single joints ({names}: {hs:.3f} mm against "
-                                                      f"{ht:.3f} mm, paired p = {p:.2f})"})
+                              "form": c.label, "why": f"{len(new)} cause(s) on single joints do better on "
+                                                      f"held-out poses ({names}: {hs:.3f} mm against {ht:.3f} mm, "
+                                                      f"paired p = {p:.2g})"})
         self.rejected += sub.rejected
         self.chosen, self.findings, self.current, self.x_ref = sub.chosen, sub.findings, sub.current, sub.x_ref
         return True
