@@ -213,9 +213,10 @@ def test_two_causes_together_are_both_found(seed):
     its centres of mass 30 mm off the model's: a load-driven cause computed from the model's leaves a load-shaped
     rest, which small further findings may take up (over 100 draws: a harmonic or compliance of a neighbouring
     joint at 2-18 % held-out gain, a play, an `unexplained` rest following a joint). They are judged by the truth
-    error, not by their names; no-effect worlds have no findings (test_no_cause_means_no_finding). Known miss, 1 in
-200 draws: seed 2302256 (the bending of link J2 and J3's encoder scale, named as a soft play on J3 and an
-`unexplained` rest at 2x the floor)."""
+    error, not by their names; no-effect worlds have no findings (test_no_cause_means_no_finding). Known misses, 2 in
+260 draws: seeds 2302256 and 1300698 (the bending of link J2 or J3 and J3's encoder scale, named as a soft play
+on J3 and an `unexplained` rest at 2x the floor: the play's switch is identified on all poses before the folds,
+which flatters it on held-out poses)."""
     rng = np.random.default_rng((seed, 3))
     world = World(SPRAY, seed)
     kinds = [str(rng.choice(["joint_spring", "cantilever"])),
