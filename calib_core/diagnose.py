@@ -308,6 +308,11 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss - chance / (m - p)
 
 
+def _who(e: Effect, model: RobotModel) -> dict:
+    """A cause as the answer names it: kind, joint names and form."""
+    return {"kind": e.kind, "joints": [model.joint_names[j] for j in e.joints], "form": e.label(model)}
+
+
 def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
     """Log Bonferroni threshold per candidate: ALPHA split between the named causes and the time steps."""
     steps = [e for e in pool if isinstance(e, SessionStep)]
@@ -413,8 +418,7 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
             better.append((alt, t))
     best, t = min(better, key=lambda at: at[1].metrics()["holdout_rms_mm"]) if better else (c.effect, trial)
     h = t.metrics()["holdout_rms_mm"]
-    alike = [{"kind": a.kind, "joints": [model.joint_names[j] for j in a.joints], "form": a.label(model),
-              "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
+    alike = [{**_who(a, model), "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
              for a, ta in tried if a is not best and a.kind != best.kind
              and (ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h or holdout_gain(ta, t)[0] > 0.05)]
     alike = list({(a["kind"], tuple(a["joints"])): a for a in alike}.values())  # one per kind and joints
@@ -809,8 +813,7 @@ class _Search:
         for c in ranked:
             if c.log_p > thresholds[id(c.effect)]:
                 continue
-            who = {"kind": c.effect.kind, "joints": [model.joint_names[j] for j in c.effect.joints],
-                   "form": c.label}
+            who = _who(c.effect, model)
             broad = isinstance(c.effect, SessionStep) or len(c.effect.joints) > 1  # spread over the arm already
             if c.beyond_chance < NAMED_SHARE * field_share and not broad:
                 self.rejected.append({**who, "why": f"explains {100 * c.beyond_chance:.0f} % of the residual beyond "
@@ -867,10 +870,9 @@ class _Search:
             return False
         p, _ = holdout_gain(trial, sub.current)
         names = ", ".join(e.label(self.model) for e in new)
-        self.rejected.append({"kind": c.effect.kind, "joints": [self.model.joint_names[j] for j in c.effect.joints],
-                              "form": c.label, "why": f"{len(new)} cause(s) on single joints do better on "
-                                                      f"held-out poses ({names}: {hs:.3f} mm against {ht:.3f} mm, "
-                                                      f"paired p = {p:.2g})"})
+        self.rejected.append({**_who(c.effect, self.model), "why": f"{len(new)} cause(s) on single joints do better "
+                                                                   f"on held-out poses ({names}: {hs:.3f} mm against "
+                                                                   f"{ht:.3f} mm, paired p = {p:.2g})"})
         self.rejected += sub.rejected
         self.chosen, self.findings, self.current, self.x_ref = sub.chosen, sub.findings, sub.current, sub.x_ref
         return True

@@ -201,7 +201,7 @@ def _beside(findings, kind, joints) -> dict | None:
     counts only exact names: docs/RESULTS.md 3.2)."""
     if kind not in LOAD_DRIVEN:
         return None
-    near = {k for j in joints for i in [SPRAY.joint_names.index(j)] for k in (i - 1, i, i + 1)}
+    near = {k for i in map(SPRAY.joint_names.index, joints) for k in (i - 1, i, i + 1)}
     return next((f for f in findings if f["kind"] in LOAD_DRIVEN
                  and {SPRAY.joint_names.index(j) for j in f["joints"]} <= near), None)
 
