@@ -74,6 +74,7 @@ class Dataset:
     model: dict
     csv_text: str
     notes: str
+    instrument: str | None = None  # the noise model to upload with when the CSV has no sigma column
 
 
 def available(root: Path | str = SHARED_DATASETS) -> bool:
@@ -308,7 +309,7 @@ def iiwa7_payload(payload_kg: float | None = 0.0, root: Path | str = SHARED_DATA
         model = parse_model(model).to_dict()
         model.pop("tool", None)
         model["targets"] = [{"name": t, "parent": IIWA_JOINTS[-1], "xyz": [0.0, 0.0, 0.0]} for t in tags]
-    return Dataset(name, model, csv_text, notes)
+    return Dataset(name, model, csv_text, notes, instrument="optical")
 
 
 def iiwa7_run(run: str, root: Path | str = SHARED_DATASETS, *, orientation: bool = True,
@@ -329,7 +330,7 @@ def iiwa7_run(run: str, root: Path | str = SHARED_DATASETS, *, orientation: bool
              + ("; qw..qz = marker rotation as a unit quaternion" if orientation else "")
              + ("; tau_A1..tau_A7 = measured joint torques N*m, sign flipped to the torque the joint applies"
                 if torques else "") + "; no sigma column: upload with ?instrument=optical; licence none stated")
-    return Dataset(f"iiwa7_{run}", model, _csv_text(points, IIWA_JOINTS, q, xyz, cols), notes)
+    return Dataset(f"iiwa7_{run}", model, _csv_text(points, IIWA_JOINTS, q, xyz, cols), notes, instrument="optical")
 
 
 # --- DLR Agile Justin ---------------------------------------------------------------------

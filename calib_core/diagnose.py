@@ -83,8 +83,11 @@ def noise_floor_mm(meas: Measurements, sigma: np.ndarray, repeatability_mm: floa
 
 
 def _repeatability_from_repeats(meas: Measurements, sigma: np.ndarray) -> float | None:
-    """Per-axis robot repeatability (mm) from poses measured more than once, instrument noise removed."""
-    q = np.round(meas.joints, 6)
+    """Per-axis robot repeatability (mm) from poses measured more than once, instrument noise removed. A repeat is
+    the same joint values, target, setup and payload: the same joints with another marker (a payload run with its
+    own target) measure another point (the iiwa's runs gave a floor of 86 mm)."""
+    same = [meas.joints, meas.payload_kg()[:, None]] + [v[:, None] for v in (meas.target, meas.setup) if v is not None]
+    q = np.round(np.hstack(same).astype(float), 6)
     _, inv, counts = np.unique(q, axis=0, return_inverse=True, return_counts=True)
     inv = inv.ravel()
     groups = np.flatnonzero(counts > 1)

@@ -126,7 +126,8 @@ def cmd_convert_dataset(args) -> int:
         (out / "measurements.csv").write_text(ds.csv_text)
         (out / "NOTES.txt").write_text(ds.notes + "\n")
         print(f"{out / 'model.json'}\n{out / 'measurements.csv'}\n{ds.notes}")
-        print(f"try: calib demo --robot {out / 'model.json'} --data {out / 'measurements.csv'}")
+        noise = f" --instrument {ds.instrument}" if ds.instrument else ""
+        print(f"try: calib demo --robot {out / 'model.json'} --data {out / 'measurements.csv'}{noise}")
     return 0
 
 

@@ -337,10 +337,15 @@ def test_iiwa_exp1_calibrates_with_and_without_orientation():
 # --- all four through the CLI -----------------------------------------------------------------------------
 
 @needs_all
-def test_cli_convert_all(tmp_path):
+def test_cli_convert_all(tmp_path, capsys):
     from service.cli import main
 
     assert main(["convert-dataset", "all", str(tmp_path)]) == 0
+    # the suggested demo command carries the dataset's noise model where its CSV has no sigma column: without it
+    # the iiwa's optical tracker was taken for a laser tracker and the demo's auto job ran into its 600 s limit
+    hints = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("try: calib demo")]
+    assert len(hints) == 4 and sum(h.endswith("--instrument optical") for h in hints) == 1, hints
+    assert "iiwa7_payload" in next(h for h in hints if h.endswith("--instrument optical"))
     for name in ("dlr_agile_justin", "hilti_trailblazer", "iiwa7_payload", "motoman_leica"):
         model = parse_model(json.loads((tmp_path / name / "model.json").read_text()))
         meas = parse_measurements((tmp_path / name / "measurements.csv").read_bytes(), model)

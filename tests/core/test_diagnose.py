@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calib_core.diagnose import ALPHA, NAMED_SHARE, diagnose, screen
+from calib_core.diagnose import ALPHA, NAMED_SHARE, diagnose, noise_floor_mm, screen
 from calib_core.effects import CyclicJointError, candidates
 from calib_core.identify import CalibratedRobot, evaluate, identify
 from calib_core.model import parse_model
@@ -176,6 +176,20 @@ def test_a_cause_half_the_noise_is_not_taken_for_part_of_a_field(seed):
     ranked, share = screen(geo, meas, geo.sigma_mm, pool, geo.x, ALPHA)
     assert len(ranked) == 1, (seed, info["parameters"])
     assert ranked[0].beyond_chance >= NAMED_SHARE * share, (seed, size, ranked[0].beyond_chance, share)
+
+
+def test_the_same_joints_at_another_target_are_no_repeat(seed):
+    """The floor's repeatability comes from poses measured again: the same joints, target, setup and payload. The
+    same joints at another target (a marker per payload run, or the virtual points of a 6-D row) measure another
+    point 100 mm away; taken for repeats they made the iiwa's floor 86 mm."""
+    meas = null_world(SPRAY, seed).campaign(n=60, repeats=10).meas
+    sigma = meas.noise_sigma_mm()
+    two = dataclasses.replace(meas, joints=np.r_[meas.joints, meas.joints], points=np.r_[meas.points, meas.points + 100.0],
+                              point_ids=list(meas.point_ids) + [f"{i}-b" for i in meas.point_ids],
+                              target=np.r_[np.zeros(meas.n_poses, int), np.ones(meas.n_poses, int)])
+    one, both = noise_floor_mm(meas, sigma), noise_floor_mm(two, np.r_[sigma, sigma])
+    assert one[2] == both[2] == "repeats", (seed, one, both)
+    assert both[0] == pytest.approx(one[0], rel=1e-9), (seed, one, both)
 
 
 @pytest.mark.slow
