@@ -206,15 +206,19 @@ def _det3(X: np.ndarray) -> np.ndarray:
             + X[0, 2] * (X[1, 0] * X[2, 1] - X[1, 1] * X[2, 0]))
 
 
+def _adj3(X: np.ndarray) -> np.ndarray:
+    """Adjugates (3, 3, C) of symmetric (3, 3, C) matrices: X^-1 = adj / det."""
+    return np.array([[X[1, 1] * X[2, 2] - X[1, 2] ** 2, X[0, 2] * X[1, 2] - X[0, 1] * X[2, 2],
+                      X[0, 1] * X[1, 2] - X[0, 2] * X[1, 1]],
+                     [X[0, 2] * X[1, 2] - X[0, 1] * X[2, 2], X[0, 0] * X[2, 2] - X[0, 2] ** 2,
+                      X[0, 2] * X[0, 1] - X[0, 0] * X[1, 2]],
+                     [X[0, 1] * X[1, 2] - X[0, 2] * X[1, 1], X[0, 2] * X[0, 1] - X[0, 0] * X[1, 2],
+                      X[0, 0] * X[1, 1] - X[0, 1] ** 2]])
+
+
 def _quad3(X: np.ndarray, r: np.ndarray) -> np.ndarray:
     """r^T X^-1 r (C,) for symmetric (3, 3, C) matrices X and (3, C) vectors r, by the adjugate."""
-    adj = np.array([[X[1, 1] * X[2, 2] - X[1, 2] ** 2, X[0, 2] * X[1, 2] - X[0, 1] * X[2, 2],
-                     X[0, 1] * X[1, 2] - X[0, 2] * X[1, 1]],
-                    [X[0, 2] * X[1, 2] - X[0, 1] * X[2, 2], X[0, 0] * X[2, 2] - X[0, 2] ** 2,
-                     X[0, 2] * X[0, 1] - X[0, 0] * X[1, 2]],
-                    [X[0, 1] * X[1, 2] - X[0, 2] * X[1, 1], X[0, 2] * X[0, 1] - X[0, 0] * X[1, 2],
-                     X[0, 0] * X[1, 1] - X[0, 1] ** 2]])
-    return np.einsum("ic,ijc,jc->c", r, adj, r) / _det3(X)
+    return np.einsum("ic,ijc,jc->c", r, _adj3(X), r) / _det3(X)
 
 
 _EYE3 = np.eye(3)[:, :, None]
@@ -258,16 +262,27 @@ class _Sequential:
         self.Minv -= G @ W @ G.T
 
     def _outer(self, G: np.ndarray, W: np.ndarray) -> np.ndarray:
-        """B_i W B_i^T (3, 3, C) for every candidate, B_i = A_i G (G (p, 3)), W symmetric positive definite."""
-        B = (self.flat @ (G @ np.linalg.cholesky(W))).reshape(3, self.n, 3)  # A_i M^-1 A_k^T L, W = L L^T
-        B = np.ascontiguousarray(B.transpose(0, 2, 1))
-        return np.einsum("ikc,jkc->ijc", B, B)
+        """B_i W B_i^T (3, 3, C) for every candidate, B_i = A_i G (G (p, 3)), W symmetric. No factor of W: a pose
+        that alone identifies a direction makes I - S_k nearly singular, and its inverse then is not positive
+        definite in floating point."""
+        B = np.ascontiguousarray((self.flat @ G).reshape(3, self.n, 3).transpose(0, 2, 1))  # (3, 3, C)
+        BW = np.ascontiguousarray((self.flat @ (G @ W)).reshape(3, self.n, 3).transpose(0, 2, 1))
+        return np.einsum("ikc,jkc->ijc", BW, B)
 
     def swap_gain(self, k: int) -> np.ndarray:
-        """log det change of M for every candidate j if the chosen pose k is replaced by j (0 for j = k)."""
-        W = np.linalg.inv(np.eye(3) - self.S[:, :, k])
-        S = self.S + self._outer(self.Minv @ self.A[:, k].T, W)
-        return np.log(_det3(S + _EYE3)) - np.linalg.slogdet(W)[1]
+        """log det change of M for every candidate j if the chosen pose k is replaced by j (0 for j = k):
+        log det(I + S_j) + log det(I - S_k + S_kj (I + S_j)^-1 S_jk), the Schur form of the rank-six lemma. Every
+        term is bounded, so a pose that alone identifies a direction (I - S_k ~ 0) is scored as exactly as any;
+        downdating M first would invert I - S_k."""
+        X = self.S + _EYE3
+        B = np.ascontiguousarray((self.flat @ (self.Minv @ self.A[:, k].T)).reshape(3, self.n, 3))  # S_jk (3,C,3)
+        B = B.transpose(0, 2, 1)  # (3 of j, 3 of k, C)
+        adj, det = _adj3(X), _det3(X)
+        Q = np.einsum("abC,acC,cdC->bdC", B, adj, B) / det  # S_kj (I + S_j)^-1 S_jk
+        D = (np.eye(3) - self.S[:, :, k])[:, :, None] + Q
+        with np.errstate(divide="ignore", invalid="ignore"):  # det D <= 0 only by rounding: never a swap
+            gain = np.log(det) + np.log(_det3(D))
+        return np.where(np.isfinite(gain), gain, -np.inf)
 
     def remove(self, k: int) -> None:
         """Take a chosen pose k out of M (D-criterion states only: the fit `theta` is not downdated)."""

@@ -101,6 +101,8 @@ def make_plan(db: Database, robot_id: str, body: PlanIn) -> dict:
         p = plan(model, body.n_poses, body.purpose, seed=body.seed, tracker_mm=tracker,
                  max_incidence_deg=body.max_incidence_deg, meas=meas, effects=() if robot is None else robot.effects,
                  rivals=rivals)
+    except np.linalg.LinAlgError:  # a numerical failure is ours, not the request's: a 500, never a 422 on n_poses
+        raise
     except ValueError as exc:  # too few candidates face the tracker
         field, value = (("body.tracker", body.tracker) if body.tracker is not None else
                         ("body.max_incidence_deg", body.max_incidence_deg) if body.max_incidence_deg is not None
