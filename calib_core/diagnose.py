@@ -199,8 +199,11 @@ class _Fitter:
     prior_scale: float
 
     def __call__(self, effects=(), x_ref=None, folds: int | None = None) -> Calibration:
+        refold = None
+        if any(_identified_play(e) for e in effects):
+            refold = lambda cal, train: _refold_plays(self.meas, cal.sigma_mm, cal, train)  # noqa: E731
         return identify(self.model, self.meas, effects=tuple(effects), loss=self.loss, x_ref=x_ref, free=self.free,
-                        prior_scale=self.prior_scale, folds=self.folds if folds is None else folds)
+                        prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold)
 
 
 def _robust_sigma(cal: Calibration, sigma: np.ndarray) -> np.ndarray:
@@ -578,55 +581,121 @@ def _distributed(load_pool: dict[int, LoadCompliance]) -> list[Effect]:
                            payload=load_pool[js[0]].payload)]
 
 
-def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray,
-                         joints: list[int], fit: "_Fitter") -> list[Backlash]:
-    """Backlash whose switch follows the load identified from the data: per joint, a linear classifier of the
-    sign of the residual along that joint's motion on the gravity regressor (started from the model's
-    statics where there are masses). Its search is paid for in the F-test (`search_dof`)."""
-    model = cal.model
-    sigma = _robust_sigma(cal, sigma)
-    r, _, chain = _weighted_system(cal, meas, sigma, x_ref)
-    R = r.reshape(-1, 3) * sigma[:, None]
-    Jq = chain.joint_jacobian()
-    ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
-    ref_ctx = Context(model, ref, meas)
-    nominal = None
-    if has_loads(model, meas):
-        nominal = ref_ctx.loads
-    out = []
-    for j in joints:
+@dataclass(frozen=True)
+class _LoadFeatures:
+    """Joint j's identified-load regressor F (N, k): gravity regressor and payload columns, as Backlash.load_coef
+    weighs them; Z (N, rank) the same span as unit-RMS orthogonal features, load = F @ (to_coef @ beta)."""
+
+    F: np.ndarray
+    Z: np.ndarray
+    to_coef: np.ndarray  # (k, rank)
+
+    @classmethod
+    def of(cls, ref: K.Chain, meas: Measurements, j: int) -> "_LoadFeatures | None":
         F = np.column_stack([gravity_regressor(ref, j), payload_load(ref, meas.payload_kg(), j)])
         scale = np.linalg.norm(F, axis=0)
         keep = scale > 1e-9 * max(scale.max(), 1e-300)
         if not keep.any():
-            continue
+            return None
         U, s, Vt = np.linalg.svd(F[:, keep] / scale[keep], full_matrices=False)
         rank = int((s > 1e-6 * s[0]).sum())
         root_n = np.sqrt(len(U))
-        Z = U[:, :rank] * root_n  # unit-RMS features
-        col = Jq[:, :, j]
-        w = (col**2).sum(1)
-        start = nominal[:, j] if nominal is not None else (col * R).sum(1) / np.maximum(w, 1e-300)
-        sharp = np.linalg.lstsq(Z, start, rcond=None)[0]
+        to_coef = np.zeros((F.shape[1], rank))
+        to_coef[keep] = root_n * (Vt[:rank].T / s[:rank]) / scale[keep][:, None]
+        return cls(F, U[:, :rank] * root_n, to_coef)
+
+    def beta(self, load: np.ndarray) -> np.ndarray:
+        return np.linalg.lstsq(self.Z, load, rcond=None)[0]
+
+    def play(self, j: int, beta: np.ndarray, soft: bool) -> Backlash | None:
+        """The play whose switch is Z beta (None if that load never changes sign); a soft one keeps beta's scale."""
+        coef = self.to_coef @ beta
+        load = self.F @ coef
+        if not np.any(load > 0) or not np.any(load < 0):
+            return None
+        rank = self.Z.shape[1]
+        if soft:
+            return Backlash((j,), transition=1.0, search_dof=rank + 1, fitted_softness=True,
+                            load_coef=tuple(float(v) for v in coef))
+        return Backlash((j,), transition=Backlash.TRANSITION_SHARE, search_dof=rank,
+                        load_coef=tuple(float(v) for v in coef / np.abs(load).max()))
+
+
+def _column(cal: Calibration, meas: Measurements, j: int) -> np.ndarray:
+    """How the measured point moves per unit of joint j (N, 3), on cal's geometry with its effects."""
+    dq = cal.robot.effect_offsets(meas.joints, meas)[0] if cal.effects else 0.0
+    return K.Chain(cal.model, cal.x, meas.joints + dq, cal.R0, meas.labels).joint_jacobian()[:, :, j]
+
+
+def _joint_offsets(col: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A residual (N, 3) mm read as an offset of the joint whose motion is col (N, 3), per pose (least squares
+    along its motion), and the weight of each pose's reading (1 / variance)."""
+    w = (col**2).sum(1)
+    return (col * residual).sum(1) / np.maximum(w, 1e-300), w
+
+
+def _identified_play(e: Effect) -> bool:
+    return isinstance(e, Backlash) and bool(e.load_coef)
+
+
+def _refold_plays(meas: Measurements, sigma: np.ndarray, cal: Calibration, train: np.ndarray) -> tuple:
+    """cal's effects with every identified play's switch classified again on the training poses alone, from the
+    start the search took (the model's statics, or the residual), on the residual with the fitted play put back:
+    the switch was read off the residual, so a held-out pose must not have helped place it (identify's `refold`;
+    started from the full-data switch instead, a fold stays in its basin and the held-out poses still gain on
+    pure noise)."""
+    ref = K.Chain(cal.model, cal.x_basis, meas.joints, cal.R0, meas.labels)
+    ctx = Context(cal.model, ref, meas)
+    residual = meas.points - cal.predict(meas.joints, meas)
+    sigma = _robust_sigma(cal, sigma)
+    out = list(cal.effects)
+    for i, (e, v) in enumerate(zip(cal.effects, cal.effect_values)):
+        if not _identified_play(e):
+            continue
+        j = e.joints[0]
+        feats, col = _LoadFeatures.of(ref, meas, j), _column(cal, meas, j)
+        off, w = _joint_offsets(col, residual + col * (v[0] * e.basis(ctx).joint[:, j, 0])[:, None])
+        Z, off, wt = feats.Z[train], off[train], (w / sigma**2)[train]
+        start = ctx.loads[train, j] if has_loads(cal.model, meas) else off
+        beta = _switch(Z, off, wt, np.linalg.lstsq(Z, start, rcond=None)[0])
+        if e.fitted_softness:
+            beta = _softness(Z, off, wt, beta)
+        out[i] = feats.play(j, beta, e.fitted_softness) or e
+    return tuple(out)
+
+
+def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray,
+                         joints: list[int], fit: "_Fitter") -> list[Backlash]:
+    """Backlash whose switch follows the load identified from the data: per joint, a linear classifier of the
+    sign of the residual along that joint's motion on the gravity regressor (started from the model's
+    statics where there are masses). Its search is paid for in the F-test (`search_dof`), and each fold of the
+    cross-validation finds the switch again on its own training poses (_refold_plays)."""
+    model = cal.model
+    sigma = _robust_sigma(cal, sigma)
+    ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
+    ref_ctx = Context(model, ref, meas)
+    nominal = ref_ctx.loads if has_loads(model, meas) else None
+    residual = meas.points - cal.predict(meas.joints, meas)
+    out = []
+    for j in joints:
+        feats = _LoadFeatures.of(ref, meas, j)
+        if feats is None:
+            continue
+        col = _column(cal, meas, j)
+        e, w = _joint_offsets(col, residual)
+        sharp = feats.beta(nominal[:, j] if nominal is not None else e)
         for soft in (False, True):  # a sharp play, then one whose softness is fitted
-            partial, play, beta = R, None, sharp
+            partial, play, beta = residual, None, sharp
             for _ in range(1 + PLAY_PASSES):
-                e = (col * partial).sum(1) / np.maximum(w, 1e-300)  # the residual as an offset of joint j, per pose
-                beta = _softness(Z, e, w / sigma**2, beta) if soft else _switch(Z, e, w / sigma**2, beta)
-                coef = np.zeros(F.shape[1])
-                coef[keep] = root_n * (Vt[:rank].T / s[:rank]) @ beta / scale[keep]
-                load = F @ coef
-                if not np.any(load > 0) or not np.any(load < 0):
+                e, _ = _joint_offsets(col, partial)  # the residual as an offset of joint j, per pose
+                beta = _softness(feats.Z, e, w / sigma**2, beta) if soft else _switch(feats.Z, e, w / sigma**2, beta)
+                found = feats.play(j, beta, soft)
+                if found is None:
                     break
-                if soft and np.abs(load).max() < SATURATES:
+                play = found
+                if soft and np.abs(feats.F @ np.asarray(play.load_coef)).max() < SATURATES:
                     play = None  # it never reaches the flanks of its play: that is a spring, not a play
                     break
-                if soft:
-                    play = Backlash((j,), transition=1.0, search_dof=rank + 1, fitted_softness=True,
-                                    load_coef=tuple(float(v) for v in coef))
-                else:
-                    play = Backlash((j,), transition=Backlash.TRANSITION_SHARE, search_dof=rank,
-                                    load_coef=tuple(float(v) for v in coef / np.abs(load).max()))
                 try:  # fit it, then find the switch again on the residual with the play put back (partial residual)
                     fitted = fit(tuple(cal.effects) + (play,), x_ref, folds=0)
                 except ValueError:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -411,6 +412,7 @@ def identify(
     folds: int = 5,
     x_ref: np.ndarray | None = None,
     prior_scale: float = 1.0,
+    refold: Callable[[Calibration, np.ndarray], tuple[Effect, ...]] | None = None,
 ) -> Calibration:
     """Identify the independent geometric parameters (restricted to names/prefixes in `free` if given)
     jointly with the parameters of `effects`.
@@ -419,7 +421,9 @@ def identify(
     'huber' or 'cauchy'; `folds` > 1 adds k-fold cross-validated held-out distances. Effect bases are
     evaluated on the geometry `x_ref` (default: a geometric-only fit of the same data). `prior_scale`
     multiplies the precision of the default prior toward nominal of the joint parameters (> 1: a stronger
-    pull to nominal; with regularize=True only).
+    pull to nominal; with regularize=True only). `refold(cal, train)` gives each fold the effects to refit on
+    its training poses (train: (N,) bool), for effects whose form was itself read off this data (a play's switch
+    found on the residual): the held-out poses then have no say in it.
 
     Raises ValueError when the pose set cannot calibrate: fewer than three distinct joint configurations
     or fewer equations than parameters. A pose set that identifies less than the model's structure allows
@@ -447,11 +451,11 @@ def identify(
         raise ValueError(f"{meas.n_poses} poses give {3 * meas.n_poses} equations for {len(idx) + n_eff} "
                          "parameters; measure more poses")
     return _calibrate(model, meas, sigma, x0, R0, ident, idx, effects=effects, loss=loss, regularize=regularize,
-                      folds=folds, x_ref=x_ref, prior_scale=prior_scale)[0]
+                      folds=folds, x_ref=x_ref, prior_scale=prior_scale, refold=refold)[0]
 
 
 def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None, regularize=True, folds=5,
-               x_ref=None, prior_scale=1.0, start=None, evals: ChainEvaluations | None = None
+               x_ref=None, prior_scale=1.0, start=None, evals: ChainEvaluations | None = None, refold=None
                ) -> tuple[Calibration, Solution]:
     """identify() once the pose set is checked, pre-aligned and analysed: the fit weighted by the noise, again
     with the model error added to the weights, and the cross-validation. Also returns the first fit (noise
@@ -480,8 +484,11 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
                       x_basis=x_ref if effects else None, noise_model=meas.noise_source(),
                       setup_names=meas.setup_names)
     if folds > 1 and meas.n_poses >= 2 * folds:
+        fold_bases = None if refold is None else (
+            lambda train: effect_bases(model, meas, refold(cal, train), x_ref, R0))
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
-                                                 eprior, prior_scale=prior_scale, start=sol.x, evals=evals)
+                                                 eprior, prior_scale=prior_scale, start=sol.x, evals=evals,
+                                                 fold_bases=fold_bases)
     return cal, first
 
 
@@ -496,13 +503,14 @@ def fold_ids(n_poses: int, folds: int) -> np.ndarray:
 
 def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases=None,
                    effect_prior=None, prior_scale: float = 1.0, start: np.ndarray | None = None,
-                   evals: ChainEvaluations | None = None) -> np.ndarray:
+                   evals: ChainEvaluations | None = None, fold_bases=None) -> np.ndarray:
     """Distance (mm) of every pose to the model fitted on the other folds.
 
     Every fold's fit begins at `start` (the full-data solution over [x[idx], effect parameters]; default
     nominal): a few poses less move the optimum little, so LM needs a step or two (to the same convergence
     test) instead of the whole way from nominal. Geometric folds are solved together (held_out), with memoised
-    `evals` (may be shared with the full-data fit)."""
+    `evals` (may be shared with the full-data fit). `fold_bases(train)`, if given, gives each fold its own effect
+    bases (effects refitted in form on the training poses)."""
     if bases is None:
         evals = evals or ChainEvaluations(model, meas.joints, R0, labels=meas.labels)
         return held_out(model, meas, x0, evals, [Folds(sigma, idx, loss, regularize, prior_scale, start)], folds)[0]
@@ -511,14 +519,15 @@ def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bas
     warm = {} if start is None else {"damping": WARM_DAMPING, "ftol": WARM_FTOL}
     for k in range(folds):
         train, test = assign != k, assign == k
-        sub = (bases[0][train], bases[1][train])
+        fold = bases if fold_bases is None else fold_bases(train)
+        sub = (fold[0][train], fold[1][train])
         sol = _fit(model, meas.subset(train), sigma[train], x0, R0, idx, loss, regularize, sub, effect_prior,
                    start=start, prior_scale=prior_scale, covariance=False, **warm)
         x = x0.copy()
         x[idx] = sol.x[: len(idx)]
         theta = sol.x[len(idx):]
         labels = None if meas.labels is None else meas.labels[test]
-        pred = K.forward(model, x, meas.joints[test] + bases[0][test] @ theta, R0, labels) + bases[1][test] @ theta
+        pred = K.forward(model, x, meas.joints[test] + fold[0][test] @ theta, R0, labels) + fold[1][test] @ theta
         out[test] = np.linalg.norm(meas.points[test] - pred, axis=1)
     return out
 
