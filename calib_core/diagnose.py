@@ -21,8 +21,8 @@ import numpy as np
 from scipy import optimize, stats
 
 from . import kinematics as K
-from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance, SessionStep, candidates, has_loads,
-                      loads)
+from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance, Probe, SessionStep, candidates,
+                      has_loads, loads)
 from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJointCompliance, _as_tuple,
                               body_parameters, gravity_regressor, lateral_axes, load_mix_for, mass_step, payload_load)
 from .kinematics import _cross
@@ -822,7 +822,8 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
             what = "the gravity load on the joints"
         else:
             what = c.effect.describe(model)
-        out.append({"what": what, "p_value": c.p_value, "share_pct": 100.0 * c.explained, "effect": c.effect})
+        out.append({"what": what, "joints": [model.joint_names[j] for j in c.effect.joints], "p_value": c.p_value,
+                    "share_pct": 100.0 * c.explained, "effect": c.effect})
     return out
 
 
@@ -1028,12 +1029,13 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         held_out_rms = np.sqrt(holdout_ms(current))
         if follows or basis != "assumed" or held_out_rms / floor > NOISE_LIKE:
             trial = None
-            fitted = fit_residual_field(fit, current, chosen, x_ref)
-            if fitted is not None:
-                t, rf = fitted
+            fitted = [f for f in [fit_residual_field(fit, current, chosen, x_ref), _drive_field(fit, chosen, x_ref,
+                                                                                                    follows)] if f]
+            for t, rf in sorted(fitted, key=lambda f: f[0].metrics()["holdout_rms_mm"]):
                 p_gain, drop = holdout_gain(current, t)
                 if p_gain < HOLDOUT_ALPHA and drop > 0:
                     trial = (t, rf)
+                    break
             findings.append(_unexplained_finding(model, current, trial, floor, follows, basis))
             if trial is not None:
                 current = trial[0]
@@ -1131,6 +1133,19 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
     return trial
 
 
+def _drive_field(fit, chosen, x_ref, follows) -> tuple[Calibration, Probe] | None:
+    """The strongest joint-driven probe the residual follows (the other joints' offsets as harmonics of one joint:
+    a cable it pulls), fitted with the geometry and the causes found, as a correction beside the smooth field."""
+    probe = next((f["effect"] for f in follows if isinstance(f["effect"], Probe) and f["effect"].family == "drive"),
+                 None)
+    if probe is None:
+        return None
+    try:
+        return fit(tuple(chosen) + (probe,), x_ref), probe
+    except ValueError:
+        return None
+
+
 def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
     """The `unexplained` entry: how far above the floor, what the residual follows, what a smooth field gains."""
     hb = before.metrics()["holdout_rms_mm"]
@@ -1147,8 +1162,13 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
     else:
         what = ("it follows no single thing we can test (not time order, no one joint, not the load, no workspace "
                 "region) but it is far too large to be noise: several causes together, or one outside our vocabulary")
-    fix = (f"a smooth joint-space correction field ({trial[1].describe()}) fitted with the geometry brings it to "
-           f"{ha:.3f} mm" if trial else "no smooth correction helps on held-out poses, so the model is not extended")
+    if trial and isinstance(trial[1], Probe):
+        fix = f"offsets of the other joints following it ({trial[1].describe(model)}) bring it to {ha:.3f} mm"
+    elif trial:
+        fix = f"a smooth joint-space correction field ({trial[1].describe()}) fitted with the geometry brings it to " \
+              f"{ha:.3f} mm"
+    else:
+        fix = "no smooth correction helps on held-out poses, so the model is not extended"
     return {"kind": "unexplained", "form": "unexplained", "joints": [], "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
             "gain_pct": 100.0 * (hb - ha) / hb, "model_error_before_mm": mb, "model_error_after_mm": ma,
             "follows": [{k: v for k, v in f.items() if k != "effect"} for f in follows],

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..kinematics import _cross
 from .base import Basis, Context, Effect
+from .joint_effects import _offset_unit
 
 
 def session_clock(meas) -> tuple[np.ndarray, str]:
@@ -90,15 +91,16 @@ def step_candidates(meas, joints: list[int], n_splits: int = 16, margin: int = 8
 
 @dataclass(frozen=True)
 class Probe(Effect):
-    """A Cartesian regression on one family of regressors, only to ask what a residual follows:
-    'joint' (harmonics of one joint), 'region' (quadratic in the tool position), 'time' (drift)."""
+    """A regression on one family of regressors, only to ask what a residual follows: 'joint' (harmonics of one
+    joint, Cartesian), 'drive' (the other joints' offsets as harmonics of one joint: a cable or hose it pulls),
+    'region' (quadratic in the tool position), 'time' (drift)."""
 
     kind = "unexplained"
     family: str = "joint"
 
     def _features(self, ctx: Context) -> tuple[np.ndarray, np.ndarray, str]:
         m, q = ctx.model, ctx.meas.joints
-        if self.family == "joint":
+        if self.family in ("joint", "drive"):
             j = self.joints[0]
             if m.prismatic[j]:
                 lo, hi = m.limits[j]
@@ -118,19 +120,33 @@ class Probe(Effect):
         return np.column_stack([t, t**2]), clock, "time (s)" if source == "time" else "row order"
 
     def _n_features(self, model) -> int:
-        if self.family == "joint":
+        if self.family in ("joint", "drive"):
             return 3 if model.prismatic[self.joints[0]] else 4
         return 9 if self.family == "region" else 2
 
+    def _driven(self, model) -> list[int]:
+        return [k for k in range(model.n_joints) if k != self.joints[0]]
+
     def parameter_names(self, model):
-        return [f"probe.{a}{i}" for a in "xyz" for i in range(self._n_features(model))]
+        F = self._n_features(model)
+        if self.family == "drive":
+            return [f"probe.{model.joint_names[k]}{i}" for k in self._driven(model) for i in range(F)]
+        return [f"probe.{a}{i}" for a in "xyz" for i in range(F)]
 
     def parameter_units(self, model):
+        if self.family == "drive":
+            return [_offset_unit(model, k) for k in self._driven(model) for _ in range(self._n_features(model))]
         return ["mm"] * len(self.parameter_names(model))
 
     def basis(self, ctx: Context) -> Basis:
         phi, reg, label = self._features(ctx)
         N, F = phi.shape
+        if self.family == "drive":
+            driven = self._driven(ctx.model)
+            joint = np.zeros((N, ctx.model.n_joints, len(driven) * F))
+            for i, k in enumerate(driven):
+                joint[:, k, i * F:(i + 1) * F] = phi
+            return Basis(joint, None, reg, label)
         cart = np.zeros((N, 3, 3 * F))
         for a in range(3):
             cart[:, a, a * F:(a + 1) * F] = phi
@@ -139,6 +155,9 @@ class Probe(Effect):
     def describe(self, model) -> str:
         if self.family == "joint":
             return f"the angle or travel of {model.joint_names[self.joints[0]]}"
+        if self.family == "drive":
+            return (f"the angle or travel of {model.joint_names[self.joints[0]]} through the other joints (a cable "
+                    "or hose it pulls, a coupling)")
         return {"region": "the tool's position in the workspace", "time": "time order (a drift)"}[self.family]
 
     def explain(self, model):
@@ -146,8 +165,10 @@ class Probe(Effect):
 
 
 def probes(model, meas) -> list[Probe]:
-    """One probe per joint that moves, one for the workspace region, one for time order."""
-    out = [Probe((j,), family="joint") for j in range(model.n_joints) if np.ptp(meas.joints[:, j]) > 1e-3]
+    """Two probes per joint that moves (Cartesian, and through the other joints), one for the workspace region,
+    one for time order."""
+    moving = [j for j in range(model.n_joints) if np.ptp(meas.joints[:, j]) > 1e-3]
+    out = [Probe((j,), family=f) for f in ("joint", "drive") for j in moving]
     out.append(Probe((), family="region"))
     out.append(Probe((), family="time"))
     return out
