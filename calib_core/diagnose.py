@@ -654,6 +654,8 @@ def _refold_plays(meas: Measurements, sigma: np.ndarray, cal: Calibration, train
             continue
         j = e.joints[0]
         feats, col = _LoadFeatures.of(ref, meas, j), _column(cal, meas, j)
+        if feats is None:
+            continue
         off, w = _joint_offsets(col, residual + col * (v[0] * e.basis(ctx).joint[:, j, 0])[:, None])
         Z, off, wt = feats.Z[train], off[train], (w / sigma**2)[train]
         start = ctx.loads[train, j] if has_loads(cal.model, meas) else off

@@ -130,7 +130,7 @@ class Probe(Effect):
     def parameter_names(self, model):
         F = self._n_features(model)
         if self.family == "drive":
-            return [f"probe.{model.joint_names[k]}{i}" for k in self._driven(model) for i in range(F)]
+            return [f"probe.{model.joint_names[k]}_{i}" for k in self._driven(model) for i in range(F)]
         return [f"probe.{a}{i}" for a in "xyz" for i in range(F)]
 
     def parameter_units(self, model):
