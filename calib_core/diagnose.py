@@ -513,8 +513,8 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     p_gain, _ = holdout_gain(before, after)
     mb, ma = model_error_mm(before, floor), model_error_mm(after, floor)
     evidence = (f"{e.explain(model)}{' ' + when if when else ''}: it explains {100 * c.explained:.0f} % of the "
-                f"remaining residual (F = {c.F:.1f}, p = {c.p_value:.1e}); on held-out poses the error drops "
-                f"{hb:.3f} -> {ha:.3f} mm (paired p = {p_gain:.1e}) and the model error beyond the noise floor "
+                f"remaining residual (F = {c.F:.1f}, {_p(c.p_value)}); on held-out poses the error drops "
+                f"{hb:.3f} -> {ha:.3f} mm (paired {_p(p_gain)}) and the model error beyond the noise floor "
                 f"({floor:.3f} mm) {mb:.3f} -> {ma:.3f} mm; {shown}")
     out = {"kind": e.kind, "joints": [model.joint_names[j] for j in e.joints],
            "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha, "gain_pct": 100.0 * (hb - ha) / hb,
@@ -904,7 +904,7 @@ class _Search:
             excess = holdout_ms(self.current) - self.floor**2
             if p_gain > HOLDOUT_ALPHA or drop < MIN_EXCESS_FRACTION * max(excess, 0.0):
                 hb, ha = self.current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
-                self.rejected.append({**who, "why": f"significant in the fit (p = {c.p_value:.1e}), but held-out "
+                self.rejected.append({**who, "why": f"significant in the fit ({_p(c.p_value)}), but held-out "
                                                     f"poses do not confirm it ({hb:.3f} -> {ha:.3f} mm, paired p = "
                                                     f"{p_gain:.1e})"})
                 continue
@@ -1130,9 +1130,14 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
              if abs(phi[k, 0] - phi_model[k, 0]) > 0.1 * phi_model[k, 0]]
     shown = ", ".join(f"{model.joint_names[k]} {phi[k, 0]:.3g} kg (model {phi_model[k, 0]:.3g})" for k in moved[:8])
     notes[:] = [n for n in notes if not n.startswith(MASS_NOTE)]  # a second identification replaces the first
-    notes.append(f"{MASS_NOTE} (held-out {hb:.3f} -> {ha:.3f} mm, paired p = {p_gain:.1e}): "
+    notes.append(f"{MASS_NOTE} (held-out {hb:.3f} -> {ha:.3f} mm, paired {_p(p_gain)}): "
                  + (shown or "no mass moved by more than 10 %") + "; the compliances' std are conditional on these masses")
     return trial
+
+
+def _p(p: float) -> str:
+    """A p-value as prose: below double precision it is a bound, never 'p = 0.0e+00'."""
+    return "p < 1e-300" if p < 1e-300 else f"p = {p:.1e}"
 
 
 def _drive_field(fit, chosen, x_ref, follows) -> tuple[Calibration, Probe] | None:
@@ -1155,7 +1160,7 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
     mb = model_error_mm(before, floor)
     ma = model_error_mm(trial[0], floor) if trial else mb
     if follows:
-        what = "it follows " + "; ".join(f"{f['what']} (explains {f['share_pct']:.0f} %, p = {f['p_value']:.1e})"
+        what = "it follows " + "; ".join(f"{f['what']} (explains {f['share_pct']:.0f} %, {_p(f['p_value'])})"
                                          for f in follows[:3])
     elif basis == "repeats":
         what = ("it follows nothing we can test (not time order, no joint, not the load, no workspace region) while "
