@@ -3,6 +3,7 @@ random ones, and a diagnosis plan tells two look-alike causes apart better than 
 import numpy as np
 import pytest
 
+from benchmarks import plan_numerics
 from calib_core import kinematics as K
 from calib_core.effects import CyclicJointError, JointScale
 from calib_core.identify import CalibratedRobot, identify
@@ -138,22 +139,11 @@ def test_removing_a_pose_undoes_adding_it(seed):
 
 def test_poses_in_a_direction_the_measured_set_never_saw_update_exactly(seed):
     """The measured set is blind to one parameter (information 1e-6 there, a million in S): adding poses that
-    see it must equal a state built from scratch. The Cholesky factor of (I + S_k)^-1 failed on about a quarter
-    of such draws ("Matrix is not positive definite", served as a 422 on n_poses) and was off by up to 4400."""
-    rng = np.random.default_rng(seed)
-    A = rng.normal(size=(60, 3, 6))
-    J = rng.normal(size=(40, 6))
-    J[:, int(rng.integers(6))] = 0.0
-    M0 = 1e-6 * np.eye(6) + J.T @ J
-    s = _Sequential(A, M0)
-    added = rng.choice(60, 3, replace=False)
-    for k in added:
-        s.add(int(k))
-    fresh = _Sequential(A, M0 + sum(A[k].T @ A[k] for k in added))
-    assert np.allclose(s.S, fresh.S, rtol=1e-4, atol=1e-2), (np.abs(s.S - fresh.S).max(), seed)
-    k = int(added[0])
-    direct = [np.linalg.slogdet(fresh.Minv @ (A[j].T @ A[j] - A[k].T @ A[k]) + np.eye(6))[1] for j in range(60)]
-    assert np.allclose(fresh.swap_gain(k), direct, atol=1e-6), seed
+    see it must equal a state built from scratch, and the swap gains the direct log det changes. The Cholesky
+    factor of (I + S_k)^-1 failed on about a third of such draws ("Matrix is not positive definite", served as a
+    422 on n_poses) and was off by up to 4400 (benchmarks/plan_numerics, RESULTS 6.4)."""
+    update, swap = plan_numerics.draw(seed)
+    assert update < 1e-2 and swap < 1e-6, (update, swap, seed)
 
 
 @pytest.mark.parametrize("doc", [spray7, arm6], ids=["spray7", "arm6"])
