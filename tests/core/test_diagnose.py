@@ -165,7 +165,8 @@ def test_a_cable_pulled_by_one_joint_is_traced_to_it(seed):
     where = f"cable on {driven} pulled by {driver} at {size:.1f}x noise, seed {seed}: {d.explanation}"
     left = next((f for f in d.findings if f["kind"] == "unexplained"), None)
     assert left is not None, where
-    assert any(f["joints"] == [driver] and "other joints" in f["what"] for f in left["follows"]), (left["follows"], where)
+    traced = any(f["joints"] == [driver] and "other joints" in f["what"] for f in left["follows"])
+    assert traced, (left["follows"], where)
     assert _truth_error(world, d.calibration.robot, info) < 0.5 * _truth_error(world, d.geometric.robot, info), where
 
 
@@ -211,7 +212,6 @@ def test_the_same_joints_at_another_target_are_no_repeat(seed):
     assert both[0] == pytest.approx(one[0], rel=1e-9), (seed, one, both)
 
 
-@pytest.mark.slow
 def test_a_play_read_off_the_noise_gains_nothing_on_held_out_poses(seed):
     """Nothing hidden: a sharp play whose switch the classifier reads off the residual fits the noise of the poses
     it was read from. Each fold finds the switch again on its own training poses, so held-out poses do not see that
@@ -226,6 +226,7 @@ def test_a_play_read_off_the_noise_gains_nothing_on_held_out_poses(seed):
     assert np.mean(ratios) > 0.99, (ratios, seed)
 
 
+@pytest.mark.slow
 def test_no_cause_means_no_finding(seed):
     """Wrong masses in the model, a robot repeating 2.5x worse than usual and two bad readings: nothing to find,
     the bad readings are named."""
