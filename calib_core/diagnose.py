@@ -201,7 +201,7 @@ class _Fitter:
     def __call__(self, effects=(), x_ref=None, folds: int | None = None) -> Calibration:
         refold = None
         if any(_identified_play(e) for e in effects):
-            refold = lambda cal, train: _refold_plays(self.meas, cal.sigma_mm, cal, train)  # noqa: E731
+            refold = lambda cal: _refold_plays(self.meas, cal.sigma_mm, cal)  # noqa: E731
         return identify(self.model, self.meas, effects=tuple(effects), loss=self.loss, x_ref=x_ref, free=self.free,
                         prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold)
 
@@ -638,32 +638,38 @@ def _identified_play(e: Effect) -> bool:
     return isinstance(e, Backlash) and bool(e.load_coef)
 
 
-def _refold_plays(meas: Measurements, sigma: np.ndarray, cal: Calibration, train: np.ndarray) -> tuple:
-    """cal's effects with every identified play's switch classified again on the training poses alone, from the
-    start the search took (the model's statics, or the residual), on the residual with the fitted play put back:
-    the switch was read off the residual, so a held-out pose must not have helped place it (identify's `refold`;
-    started from the full-data switch instead, a fold stays in its basin and the held-out poses still gain on
-    pure noise)."""
+def _refold_plays(meas: Measurements, sigma: np.ndarray, cal: Calibration) -> Callable[[np.ndarray], tuple]:
+    """For identify's `refold`: given the training poses of a fold (N,) bool, cal's effects with every identified
+    play's switch classified again on those poses alone, from the start the search took (the model's statics, or
+    the residual), on the residual with the fitted play put back. The switch was read off the residual, so a
+    held-out pose must not have helped place it (started from the full-data switch instead, a fold stays in its
+    basin and held-out poses still gain on pure noise). What does not depend on the fold is computed once."""
     ref = K.Chain(cal.model, cal.x_basis, meas.joints, cal.R0, meas.labels)
     ctx = Context(cal.model, ref, meas)
     residual = meas.points - cal.predict(meas.joints, meas)
     sigma = _robust_sigma(cal, sigma)
-    out = list(cal.effects)
+    plays = []  # (index in cal.effects, effect, features, offsets, weights, start of the switch)
     for i, (e, v) in enumerate(zip(cal.effects, cal.effect_values)):
-        if not _identified_play(e):
-            continue
-        j = e.joints[0]
-        feats, col = _LoadFeatures.of(ref, meas, j), _column(cal, meas, j)
+        j = e.joints[0] if _identified_play(e) else None
+        feats = None if j is None else _LoadFeatures.of(ref, meas, j)
         if feats is None:
             continue
+        col = _column(cal, meas, j)
         off, w = _joint_offsets(col, residual + col * (v[0] * e.basis(ctx).joint[:, j, 0])[:, None])
-        Z, off, wt = feats.Z[train], off[train], (w / sigma**2)[train]
-        start = ctx.loads[train, j] if has_loads(cal.model, meas) else off
-        beta = _switch(Z, off, wt, np.linalg.lstsq(Z, start, rcond=None)[0])
-        if e.fitted_softness:
-            beta = _softness(Z, off, wt, beta)
-        out[i] = feats.play(j, beta, e.fitted_softness) or e
-    return tuple(out)
+        start = ctx.loads[:, j] if has_loads(cal.model, meas) else off
+        plays.append((i, e, feats, off, w / sigma**2, start))
+
+    def effects(train: np.ndarray) -> tuple:
+        out = list(cal.effects)
+        for i, e, feats, off, wt, start in plays:
+            Z = feats.Z[train]
+            beta = _switch(Z, off[train], wt[train], np.linalg.lstsq(Z, start[train], rcond=None)[0])
+            if e.fitted_softness:
+                beta = _softness(Z, off[train], wt[train], beta)
+            out[i] = feats.play(e.joints[0], beta, e.fitted_softness) or e
+        return tuple(out)
+
+    return effects
 
 
 def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray,

@@ -412,7 +412,7 @@ def identify(
     folds: int = 5,
     x_ref: np.ndarray | None = None,
     prior_scale: float = 1.0,
-    refold: Callable[[Calibration, np.ndarray], tuple[Effect, ...]] | None = None,
+    refold: Callable[[Calibration], Callable[[np.ndarray], tuple[Effect, ...]]] | None = None,
 ) -> Calibration:
     """Identify the independent geometric parameters (restricted to names/prefixes in `free` if given)
     jointly with the parameters of `effects`.
@@ -421,7 +421,7 @@ def identify(
     'huber' or 'cauchy'; `folds` > 1 adds k-fold cross-validated held-out distances. Effect bases are
     evaluated on the geometry `x_ref` (default: a geometric-only fit of the same data). `prior_scale`
     multiplies the precision of the default prior toward nominal of the joint parameters (> 1: a stronger
-    pull to nominal; with regularize=True only). `refold(cal, train)` gives each fold the effects to refit on
+    pull to nominal; with regularize=True only). `refold(cal)(train)` gives each fold the effects to refit on
     its training poses (train: (N,) bool), for effects whose form was itself read off this data (a play's switch
     found on the residual): the held-out poses then have no say in it.
 
@@ -484,8 +484,9 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
                       x_basis=x_ref if effects else None, noise_model=meas.noise_source(),
                       setup_names=meas.setup_names)
     if folds > 1 and meas.n_poses >= 2 * folds:
+        fold_effects = None if refold is None else refold(cal)
         fold_bases = None if refold is None else (
-            lambda train: effect_bases(model, meas, refold(cal, train), x_ref, R0))
+            lambda train: effect_bases(model, meas, fold_effects(train), x_ref, R0))
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
                                                  eprior, prior_scale=prior_scale, start=sol.x, evals=evals,
                                                  fold_bases=fold_bases)
