@@ -526,7 +526,8 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     if e.harmonic is not None:
         out["harmonic"] = e.harmonic
     if isinstance(e, SessionStep):
-        out["follows"] = [{"what": "time order", "detail": when, "p_value": c.p_value}]
+        out["follows"] = [{"what": "time order", "detail": when, "joints": [model.joint_names[j] for j in e.joints],
+                           "p_value": c.p_value}]
     if alike:
         out["indistinguishable_from"] = alike
         out["evidence"] += ("; on this pose set it cannot be told apart from " +
