@@ -314,9 +314,14 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss - chance / (m - p)
 
 
+def _names(e: Effect, model: RobotModel) -> list[str]:
+    """The joints a cause acts on, by their model names."""
+    return [model.joint_names[j] for j in e.joints]
+
+
 def _who(e: Effect, model: RobotModel) -> dict:
     """A cause as the answer names it: kind, joint names and form."""
-    return {"kind": e.kind, "joints": [model.joint_names[j] for j in e.joints], "form": e.label(model)}
+    return {"kind": e.kind, "joints": _names(e, model), "form": e.label(model)}
 
 
 def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
@@ -358,7 +363,7 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
     tried.remove(pick)
     tried.insert(0, pick)
     best = tried[0][1].metrics()["holdout_rms_mm"]
-    alike = [{"kind": a.effect.kind, "joints": [model.joint_names[j] for j in a.effect.joints],
+    alike = [{"kind": a.effect.kind, "joints": _names(a.effect, model),
               "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
              for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best
              and (a.effect.kind, a.effect.joints) != (tried[0][0].effect.kind, tried[0][0].effect.joints)]
@@ -516,7 +521,7 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
                 f"remaining residual (F = {c.F:.1f}, {_p(c.p_value)}); on held-out poses the error drops "
                 f"{hb:.3f} -> {ha:.3f} mm (paired {_p(p_gain)}) and the model error beyond the noise floor "
                 f"({floor:.3f} mm) {mb:.3f} -> {ma:.3f} mm; {shown}")
-    out = {"kind": e.kind, "joints": [model.joint_names[j] for j in e.joints],
+    out = {"kind": e.kind, "joints": _names(e, model),
            "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha, "gain_pct": 100.0 * (hb - ha) / hb,
            "model_error_before_mm": mb, "model_error_after_mm": ma, "holdout_p_value": p_gain,
            "evidence": evidence, "effect_rms_mm": c.effect_rms_mm, "p_value": c.p_value, "parameters": params,
@@ -526,8 +531,7 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     if e.harmonic is not None:
         out["harmonic"] = e.harmonic
     if isinstance(e, SessionStep):
-        out["follows"] = [{"what": "time order", "detail": when, "joints": [model.joint_names[j] for j in e.joints],
-                           "p_value": c.p_value}]
+        out["follows"] = [{"what": "time order", "detail": when, "joints": _names(e, model), "p_value": c.p_value}]
     if alike:
         out["indistinguishable_from"] = alike
         out["evidence"] += ("; on this pose set it cannot be told apart from " +
@@ -622,10 +626,10 @@ class _LoadFeatures:
                         load_coef=tuple(float(v) for v in coef / np.abs(load).max()))
 
 
-def _column(cal: Calibration, meas: Measurements, j: int) -> np.ndarray:
-    """How the measured point moves per unit of joint j (N, 3), on cal's geometry with its effects."""
+def _joint_columns(cal: Calibration, meas: Measurements) -> np.ndarray:
+    """How the measured point moves per unit of each joint (N, 3, n), on cal's geometry with its effects."""
     dq = cal.robot.effect_offsets(meas.joints, meas)[0] if cal.effects else 0.0
-    return K.Chain(cal.model, cal.x, meas.joints + dq, cal.R0, meas.labels).joint_jacobian()[:, :, j]
+    return K.Chain(cal.model, cal.x, meas.joints + dq, cal.R0, meas.labels).joint_jacobian()
 
 
 def _joint_offsets(col: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -649,13 +653,16 @@ def _refold_plays(meas: Measurements, sigma: np.ndarray, cal: Calibration) -> Ca
     ctx = Context(cal.model, ref, meas)
     residual = meas.points - cal.predict(meas.joints, meas)
     sigma = _robust_sigma(cal, sigma)
+    Jq = _joint_columns(cal, meas)
     plays = []  # (index in cal.effects, effect, features, offsets, weights, start of the switch)
     for i, (e, v) in enumerate(zip(cal.effects, cal.effect_values)):
-        j = e.joints[0] if _identified_play(e) else None
-        feats = None if j is None else _LoadFeatures.of(ref, meas, j)
+        if not _identified_play(e):
+            continue
+        j = e.joints[0]
+        feats = _LoadFeatures.of(ref, meas, j)
         if feats is None:
             continue
-        col = _column(cal, meas, j)
+        col = Jq[:, :, j]
         off, w = _joint_offsets(col, residual + col * (v[0] * e.basis(ctx).joint[:, j, 0])[:, None])
         start = ctx.loads[:, j] if has_loads(cal.model, meas) else off
         plays.append((i, e, feats, off, w / sigma**2, start))
@@ -685,12 +692,13 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
     ref_ctx = Context(model, ref, meas)
     nominal = ref_ctx.loads if has_loads(model, meas) else None
     residual = meas.points - cal.predict(meas.joints, meas)
+    Jq = _joint_columns(cal, meas)
     out = []
     for j in joints:
         feats = _LoadFeatures.of(ref, meas, j)
         if feats is None:
             continue
-        col = _column(cal, meas, j)
+        col = Jq[:, :, j]
         e, w = _joint_offsets(col, residual)
         sharp = feats.beta(nominal[:, j] if nominal is not None else e)
         for soft in (False, True):  # a sharp play, then one whose softness is fitted
@@ -831,7 +839,7 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
             what = "the gravity load on the joints"
         else:
             what = c.effect.describe(model)
-        out.append({"what": what, "joints": [model.joint_names[j] for j in c.effect.joints], "p_value": c.p_value,
+        out.append({"what": what, "joints": _names(c.effect, model), "p_value": c.p_value,
                     "share_pct": 100.0 * c.explained, "effect": c.effect})
     return out
 

@@ -484,9 +484,10 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
                       x_basis=x_ref if effects else None, noise_model=meas.noise_source(),
                       setup_names=meas.setup_names)
     if folds > 1 and meas.n_poses >= 2 * folds:
-        fold_effects = None if refold is None else refold(cal)
-        fold_bases = None if refold is None else (
-            lambda train: effect_bases(model, meas, fold_effects(train), x_ref, R0))
+        fold_bases = None
+        if refold is not None:
+            fold_effects = refold(cal)
+            fold_bases = lambda train: effect_bases(model, meas, fold_effects(train), x_ref, R0)  # noqa: E731
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
                                                  eprior, prior_scale=prior_scale, start=sol.x, evals=evals,
                                                  fold_bases=fold_bases)
