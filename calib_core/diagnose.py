@@ -1169,7 +1169,8 @@ def _drive_field(fit, chosen, x_ref, follows) -> tuple[Calibration, Probe] | Non
 
 
 def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
-    """The `unexplained` entry: how far above the floor, what the residual follows, what a smooth field gains."""
+    """The `unexplained` entry: how far above the floor, what the residual follows, and which correction (if any)
+    held-out poses confirmed: `correction` is "smooth_field", "joint_driven_offsets" or None."""
     hb = before.metrics()["holdout_rms_mm"]
     ha = trial[0].metrics()["holdout_rms_mm"] if trial else hb
     mb = model_error_mm(before, floor)
@@ -1185,13 +1186,17 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
         what = ("it follows no single thing we can test (not time order, no one joint, not the load, no workspace "
                 "region) but it is far too large to be noise: several causes together, or one outside our vocabulary")
     if trial and isinstance(trial[1], Probe):
+        correction = "joint_driven_offsets"
         fix = f"offsets of the other joints following it ({trial[1].describe(model)}) bring it to {ha:.3f} mm"
     elif trial:
+        correction = "smooth_field"
         fix = f"a smooth joint-space correction field ({trial[1].describe()}) fitted with the geometry brings it to " \
               f"{ha:.3f} mm"
     else:
+        correction = None
         fix = "no smooth correction helps on held-out poses, so the model is not extended"
-    return {"kind": "unexplained", "form": "unexplained", "joints": [], "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
+    return {"kind": "unexplained", "form": "unexplained", "joints": [], "correction": correction,
+            "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
             "gain_pct": 100.0 * (hb - ha) / hb, "model_error_before_mm": mb, "model_error_after_mm": ma,
             "follows": [{k: v for k, v in f.items() if k != "effect"} for f in follows],
             "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still {hb / floor:.1f}x the "

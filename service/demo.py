@@ -36,6 +36,7 @@ from calib_core.model import LENGTH_TO_MM, ModelError, RobotModel, parse_model
 
 from .cli import HIDDEN_KINDS
 from .config import Settings
+from .report.figures import finding_title
 
 N_CAL, N_VAL = 150, 100
 N_PLAN = 50
@@ -260,6 +261,21 @@ def _pose_fields(model: RobotModel, meas: Measurements, rows: np.ndarray) -> dic
         body["tau"] = {f"tau_{model.joint_names[j]}": [None if np.isnan(v) else float(v) for v in tau[:, j]]
                        for j in range(model.n_joints) if not np.isnan(tau[:, j]).all()}
     return body
+
+
+UNEXPLAINED = {"smooth_field": "corrected by a smooth joint-space field",
+               "joint_driven_offsets": "corrected by offsets of the other joints following one joint",
+               None: "not corrected: no correction helped on held-out poses"}
+
+
+def cause_name(f: dict) -> str:
+    """A finding's name in the story: a named cause on its joints, a step in time order, or structure outside the
+    vocabulary with the correction the diagnosis kept (never a correction it did not make)."""
+    if f["kind"] != "unexplained":
+        return finding_title(f)
+    if "correction" not in f:  # a step in time order (diagnose._finding of a SessionStep)
+        return "a step in time order" + (f" of {', '.join(f['joints'])}" if f.get("joints") else "")
+    return f"structure no named cause explains, {UNEXPLAINED[f['correction']]}"
 
 
 def errors_mm(points_mm: np.ndarray, predicted_mm: np.ndarray) -> dict:
@@ -524,11 +540,7 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
             f"{fmm(g['holdout_rms_mm'])} RMS, {ratio:.1f}x the noise floor of {fmm(floor)} (tracker and "
             f"repeatability): {verdict}.", 3)
     for k, f in enumerate(findings, 1):
-        who = f" on {', '.join(f['joints'])}" if f.get("joints") else ""
-        harm = f" (harmonic {f['harmonic']})" if f.get("harmonic") is not None else ""
-        name = ("structure no named cause explains, corrected by a smooth joint-space field"
-                if f["kind"] == "unexplained" else f"{f['kind'].replace('_', ' ')}{who}{harm}")
-        say(f"Cause {k} [{f['kind']}]: {name}. Held-out {fmm(f['holdout_rms_before_mm'])} -> "
+        say(f"Cause {k} [{f['kind']}]: {cause_name(f)}. Held-out {fmm(f['holdout_rms_before_mm'])} -> "
             f"{fmm(f['holdout_rms_after_mm'])}, {f['gain_pct']:.1f} % better.", 3)
         say(f"Evidence: {f['evidence']}", 5)
     if not findings:

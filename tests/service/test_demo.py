@@ -282,3 +282,27 @@ def test_effect_choices_are_the_world_kinds():
 
     assert demo.EFFECTS == (*KINDS, "none")
     assert tuple(cli.HIDDEN_KINDS) == KINDS
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["cable_force", "rehoming_step", "base_tilt"])
+def test_the_story_names_only_the_correction_the_diagnosis_made(kind, seed):
+    """Structure outside the vocabulary, drawn: each finding's name in the story agrees with its evidence. The story
+    called every unexplained finding 'corrected by a smooth joint-space field', also when the correction was the
+    other joints' offsets (the Motoman as a newcomer runs it), when none helped, and for a step in time order."""
+    from calib_core.diagnose import diagnose
+    from calib_core.model import parse_model
+    from calib_core.robots import spray7
+    from calib_world import World, hide
+
+    model = parse_model(spray7())
+    world = World(model, seed)
+    rng = np.random.default_rng(seed)
+    q = world.sample_joints(150, rng)
+    info = hide(world, kind, float(rng.uniform(2.0, 6.0)), rng, q=q)
+    meas = world.campaign(q, temperature=info["temperature"]).meas
+    for f in diagnose(model, meas).findings:
+        name, evidence = demo.cause_name(f), f["evidence"]
+        assert ("smooth joint-space" in name) == ("smooth joint-space correction field" in evidence), (name, seed)
+        assert ("offsets of the other joints" in name) == ("offsets of the other joints" in evidence), (name, seed)
+        assert ("step in time order" in name) == (f["kind"] == "unexplained" and "correction" not in f), (name, seed)
