@@ -102,4 +102,7 @@ def test_shared_candidates_match_separate_identify(seed):
         assert np.array_equal(np.delete(cal.x, cal.free), np.delete(ref.x, ref.free))
         assert row["holdout_rms_mm"] == pytest.approx(ref.metrics()["holdout_rms_mm"], rel=1e-5)
         assert cal.metrics()["sigma0"] == pytest.approx(ref.metrics()["sigma0"], rel=1e-6)
-        assert cal.model_error_mm == pytest.approx(ref.model_error_mm, rel=1e-5, abs=1e-12)
+        # the model error is the root of a variance beyond the noise: compare variances, to a 1e-5 share of the
+        # noise's (a 0.0065 mm error, 0.1x the noise, differed 1.3e-5 relative on seed 1688728932)
+        noise2 = float(np.median(meas.noise_sigma_mm())) ** 2
+        assert cal.model_error_mm**2 == pytest.approx(ref.model_error_mm**2, rel=1e-5, abs=1e-5 * noise2)
