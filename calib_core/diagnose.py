@@ -18,7 +18,7 @@ from datetime import datetime, timezone
 from typing import Callable
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize, special, stats
 
 from . import kinematics as K
 from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance, Probe, SessionStep, candidates,
@@ -796,6 +796,42 @@ def _play_not_outliers(first: Calibration, meas: Measurements) -> bool:
     return False
 
 
+RUNS_P = 1e-4
+"""Poses a robust fit flags are structure in time, not bad readings, when they fall into so few runs of consecutive
+measurements that randomly placed bad readings would do so with less than this probability."""
+
+
+def runs_probability(k: int, n: int, N: int) -> float:
+    """Exact probability that n of N poses in a row, chosen at random, fall into at most k runs of consecutive
+    poses: sum_{i<=k} C(n-1, i-1) C(N-n+1, i) / C(N, n)."""
+    i = np.arange(1, k + 1)
+    lc = lambda a, b: special.gammaln(a + 1) - special.gammaln(b + 1) - special.gammaln(a - b + 1)  # noqa: E731
+    return float(min(np.exp(lc(n - 1, i - 1) + lc(N - n + 1, i) - lc(N, n)).sum(), 1.0))
+
+
+def _flagged_in_runs(out: np.ndarray, meas: Measurements) -> str:
+    """A note when the poses a robust fit flags come in runs in time (or row) order: a warm-up, a re-homing, a
+    moved base or tracker, i.e. structure for the search and the report, not outliers to down-weight; else ''."""
+    n, N = len(out), meas.n_poses
+    if n < 2 or n >= N:
+        return ""
+    clock, source = session_clock(meas)
+    rank = np.empty(N, int)
+    rank[np.argsort(clock, kind="stable")] = np.arange(N)
+    at = np.sort(rank[out])
+    k = 1 + int(np.sum(np.diff(at) > 1))
+    p = runs_probability(k, n, N)
+    if p >= RUNS_P:
+        return ""
+    ids = [meas.point_ids[j] if meas.point_ids else str(j + 1) for j in out]
+    order = "time" if source == "time" else "row (no timestamps)"
+    return (f"{n} pose(s) disagree with the rest by far more than the noise ({', '.join(ids[:20])}"
+            f"{' ...' if n > 20 else ''}), but they are not scattered bad readings: in {order} order they come in "
+            f"{k} run(s) of consecutive measurements ({_p(p)} for bad readings placed at random). Something happened "
+            f"then (a warm-up, a re-homing, the base or the tracker moved) or in the part of the workspace measured "
+            f"then: structure, so they are kept at full weight for the search and the report")
+
+
 def _holdout_inflation(cal: Calibration, n_poses: int) -> float:
     """Expected held-out mean square over the floor's for a right model: held-out poses carry the error of the
     parameters fitted without them too (p parameters, n poses)."""
@@ -1007,7 +1043,10 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     notes: list[str] = []
     if loss == "auto":
         first = identify(model, meas, loss="huber", folds=0)
-        loss = "huber" if len(first.solution.outliers) and not _play_not_outliers(first, meas) else None
+        runs = _flagged_in_runs(first.solution.outliers, meas)
+        loss = "huber" if len(first.solution.outliers) and not _play_not_outliers(first, meas) and not runs else None
+        if runs:
+            notes.append(runs)
         if loss:
             ids = [meas.point_ids[i] if meas.point_ids else str(i + 1) for i in first.solution.outliers]
             notes.append(f"{len(ids)} pose(s) disagree with the rest by far more than the noise and were "
