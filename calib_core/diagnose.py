@@ -24,7 +24,8 @@ from . import kinematics as K
 from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance, Probe, SessionStep, candidates,
                       has_loads, loads)
 from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJointCompliance, _as_tuple,
-                              body_parameters, gravity_regressor, lateral_axes, load_mix_for, mass_step, payload_load)
+                              body_parameters, carried_columns, gravity_regressor, lateral_axes, load_mix_for,
+                              mass_step, payload_load)
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import probes, session_clock, step_candidates
@@ -599,7 +600,7 @@ class _LoadFeatures:
     def of(cls, ref: K.Chain, meas: Measurements, j: int) -> "_LoadFeatures | None":
         F = np.column_stack([gravity_regressor(ref, j), payload_load(ref, meas.payload_kg(), j)])
         scale = np.linalg.norm(F, axis=0)
-        keep = scale > 1e-9 * max(scale.max(), 1e-300)
+        keep = carried_columns(F)
         if not keep.any():
             return None
         U, s, Vt = np.linalg.svd(F[:, keep] / scale[keep], full_matrices=False)

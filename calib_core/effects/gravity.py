@@ -48,6 +48,19 @@ def gravity_regressor(chain, j: int, axis: np.ndarray | None = None) -> np.ndarr
     return np.concatenate(cols, axis=1)
 
 
+NEGLIGIBLE_LOAD = 1e-9
+"""N*m per kg (per kg*m, N per kg): a regressor column of smaller RMS is rounding, not a load (the gravity load
+about a vertical axis is zero; normalised to unit RMS, its rounding became a load of 1e20 x the features' size
+that jumped at every joint move: the Motoman's torso axis E)."""
+
+
+def carried_columns(F: np.ndarray) -> np.ndarray:
+    """(m,) bool: the regressor columns (N, m) that carry a load, not rounding, and are not negligible against
+    the largest."""
+    rms = np.sqrt(np.mean(F**2, axis=0))
+    return (rms > NEGLIGIBLE_LOAD) & (rms > 1e-9 * max(rms.max(), 1e-300))
+
+
 def lateral_axes(chain, j: int) -> tuple[np.ndarray, np.ndarray]:
     """The two axes (N, 3) across joint j's axis about which its bearing and link tilt."""
     return chain.R[j][:, :, 0], chain.R[j][:, :, 1]
@@ -152,7 +165,7 @@ def load_mix_for(chain, j: int, absorb: np.ndarray | None = None, Jq: np.ndarray
         move = Jq[:, :, j] if axis is None else Jq
         A0 = (move[:, :, None] * Y[:, None, :] / sigma[:, None, None]).reshape(-1, Y.shape[1])
     scale = np.linalg.norm(A0, axis=0)
-    keep = scale > 1e-9 * max(scale.max(), 1e-300)
+    keep = carried_columns(Y) & (scale > 1e-9 * max(scale.max(), 1e-300))
     if not keep.any():
         return None
     A0 = A0[:, keep] / scale[keep]
