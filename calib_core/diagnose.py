@@ -799,7 +799,11 @@ def _play_not_outliers(first: Calibration, meas: Measurements) -> bool:
 
 RUNS_P = 1e-4
 """Poses a robust fit flags are structure in time, not bad readings, when they fall into so few runs of consecutive
-measurements that randomly placed bad readings would do so with less than this probability."""
+measurements that randomly placed bad readings would do so with less than this probability..."""
+ABSURD_SHARE = 0.05
+"""...unless one is off by more than this share of the measured workspace's size (RMS distance of the points from
+their centroid): a robot's model error (a warm-up, a re-homing by 3 deg) stays below it, a burst of readings of
+something else (the beam caught elsewhere, a typo of 1000 mm) does not."""
 
 
 def runs_probability(k: int, n: int, N: int) -> float:
@@ -810,11 +814,16 @@ def runs_probability(k: int, n: int, N: int) -> float:
     return float(min(np.exp(lc(n - 1, i - 1) + lc(N - n + 1, i) - lc(N, n)).sum(), 1.0))
 
 
-def _flagged_in_runs(out: np.ndarray, meas: Measurements) -> str:
-    """A note when the poses a robust fit flags come in runs in time (or row) order: a warm-up, a re-homing, a
-    moved base or tracker, i.e. structure for the search and the report, not outliers to down-weight; else ''."""
+def _flagged_in_runs(first: Calibration, meas: Measurements) -> str:
+    """A note when the poses the robust fit `first` flags come in runs in time (or row) order and none is absurd: a
+    warm-up, a re-homing, a moved base or tracker, i.e. structure for the search and the report, not outliers to
+    down-weight; else ''."""
+    out = first.solution.outliers
     n, N = len(out), meas.n_poses
     if n < 2 or n >= N:
+        return ""
+    size = np.sqrt(np.mean(np.sum((meas.points - meas.points.mean(0)) ** 2, axis=1)))
+    if np.linalg.norm(first.solution.residual[out], axis=1).max() > ABSURD_SHARE * size:
         return ""
     clock, source = session_clock(meas)
     rank = np.empty(N, int)
@@ -1044,7 +1053,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     notes: list[str] = []
     if loss == "auto":
         first = identify(model, meas, loss="huber", folds=0)
-        runs = _flagged_in_runs(first.solution.outliers, meas)
+        runs = _flagged_in_runs(first, meas)
         loss = "huber" if len(first.solution.outliers) and not _play_not_outliers(first, meas) and not runs else None
         if runs:
             notes.append(runs)

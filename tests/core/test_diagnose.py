@@ -203,6 +203,22 @@ def test_a_late_block_off_in_row_order_is_structure_not_outliers(seed):
     assert any(w.startswith("row order") for w in follows), (d.findings, where)
 
 
+def test_a_burst_of_absurd_readings_is_still_outliers(seed):
+    """4-8 consecutive readings of something else (the beam caught elsewhere: 200-2000 mm off) also come in one
+    run, but no robot's model is that far off: `auto` still down-weights them and names them."""
+    rng = np.random.default_rng(seed)
+    model = parse_model(arm6()) if seed % 2 else SPRAY
+    meas = null_world(model, seed).campaign(n=120).meas
+    m = int(rng.integers(4, 9))
+    k = int(rng.integers(0, meas.n_poses - m))
+    d = rng.normal(size=(m, 3))
+    points = meas.points.copy()
+    points[k:k + m] += d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(200.0, 2000.0, (m, 1))
+    d = diagnose(model, dataclasses.replace(meas, points=points))
+    bad = set(meas.point_ids[k:k + m])
+    assert d.loss == "huber" and bad <= set(d.calibration.metrics()["outliers"]), (seed, m, k, d.notes)
+
+
 def test_the_chance_of_so_few_runs_is_exact(seed):
     """The runs probability behind `auto`'s choice: bad readings placed at random fall into at most k runs of
     consecutive poses as often as the formula says (20000 random placements)."""
