@@ -1046,7 +1046,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     When mass data are identified under the compliances found, the search resumes on them once.
 
     loss 'auto' fits with the Huber loss when a first robust fit names outliers (they are listed), else
-    with plain least squares."""
+    with plain least squares; poses flagged in runs of consecutive measurements, none absurdly far off, are
+    structure (a warm-up, a re-homing) and stay at full weight (the notes say so)."""
     report = progress or (lambda f, msg: None)
     sigma = meas.noise_sigma_mm()
     report(0.05, "identifying the geometric model")
