@@ -321,8 +321,16 @@ def _names(e: Effect, model: RobotModel) -> list[str]:
 
 
 def _who(e: Effect, model: RobotModel) -> dict:
-    """A cause as the answer names it: kind, joint names and form."""
-    return {"kind": e.kind, "joints": _names(e, model), "form": e.label(model)}
+    """A cause as the answer names it: kind, joint names, form and (a cyclic error's) harmonic."""
+    out = {"kind": e.kind, "joints": _names(e, model), "form": e.label(model)}
+    if e.harmonic is not None:
+        out["harmonic"] = e.harmonic
+    return out
+
+
+def _said(a: dict) -> str:
+    """A cause in prose: kind, joints and harmonic ('cyclic_joint_error L1 h2')."""
+    return " ".join([a["kind"], ",".join(a["joints"])] + ([f"h{a['harmonic']}"] if "harmonic" in a else [])).strip()
 
 
 def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
@@ -364,10 +372,10 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
     tried.remove(pick)
     tried.insert(0, pick)
     best = tried[0][1].metrics()["holdout_rms_mm"]
-    alike = [{"kind": a.effect.kind, "joints": _names(a.effect, model),
-              "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
+    same = lambda e: (e.kind, e.joints, e.harmonic)  # noqa: E731
+    alike = [{**_who(a.effect, model), "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
              for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best
-             and (a.effect.kind, a.effect.joints) != (tried[0][0].effect.kind, tried[0][0].effect.joints)]
+             and same(a.effect) != same(tried[0][0].effect)]
     return tried[0][0], tried[0][1], alike
 
 
@@ -433,7 +441,7 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     alike = [{**_who(a, model), "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
              for a, ta in tried if a is not best and a.kind != best.kind
              and (ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h or holdout_gain(ta, t)[0] > 0.05)]
-    alike = list({(a["kind"], tuple(a["joints"])): a for a in alike}.values())  # one per kind and joints
+    alike = list({(a["kind"], tuple(a["joints"]), a.get("harmonic")): a for a in alike}.values())  # one per cause
     if best is c.effect:
         return c, trial, alike
     return Candidate(**{**c.__dict__, "effect": best, "label": best.label(model)}), t, alike
@@ -536,7 +544,7 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     if alike:
         out["indistinguishable_from"] = alike
         out["evidence"] += ("; on this pose set it cannot be told apart from " +
-                            ", ".join(f"{a['kind']} {','.join(a['joints'])}".strip() for a in alike) +
+                            ", ".join(_said(a) for a in alike) +
                             " (held-out within 2 %): measure poses that separate them to be sure")
     return out
 

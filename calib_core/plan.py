@@ -442,19 +442,21 @@ def nested(a: Effect, b: Effect) -> bool:
 def lookalike_pairs(model: RobotModel, meas: Measurements, effects, findings: list[dict]
                     ) -> list[tuple[Effect, Effect]]:
     """(found effect, look-alike effect) for every finding that lists `indistinguishable_from`: the found one from
-    the calibration's `effects`, the look-alike from the diagnosis's candidates for this set matched on kind and
-    joints (a cyclic error of unnamed harmonic: the lowest harmonic), `nested` pairs left out; at most
+    the calibration's `effects`, the look-alike from the diagnosis's candidates for this set matched on kind,
+    joints and harmonic (a cyclic error of unnamed harmonic: the lowest), `nested` pairs left out; at most
     MAX_RIVAL_PAIRS."""
     names = lambda e: [model.joint_names[j] for j in e.joints]  # noqa: E731
     pool = effect_candidates(model, meas)[0]
     out = []
     for f in findings:
-        mine = next((e for e in effects if e.kind == f.get("kind") and names(e) == list(f.get("joints", []))), None)
+        # a cause without a named harmonic matches the lowest (the candidates list them in order)
+        same = lambda e, d: (e.kind == d.get("kind") and names(e) == list(d.get("joints", []))  # noqa: E731
+                             and d.get("harmonic", e.harmonic) == e.harmonic)
+        mine = next((e for e in effects if same(e, f)), None)
         if mine is None:
             continue
         for a in f.get("indistinguishable_from") or []:
-            rival = next((e for e in pool if e.kind == a.get("kind") and names(e) == list(a.get("joints", []))
-                          and e != mine), None)
+            rival = next((e for e in pool if same(e, a) and e != mine), None)
             if rival is not None and not nested(mine, rival) and (mine, rival) not in out:
                 out.append((mine, rival))
     return out[:MAX_RIVAL_PAIRS]

@@ -608,8 +608,9 @@ def _observed(cal: dict) -> None:
 
 
 def _label(f: dict) -> str:
-    """`kind[J1,J2]` of a finding or look-alike."""
-    return f"{f['kind']}[{','.join(f.get('joints') or [])}]"
+    """`kind[J1,J2]` of a finding or look-alike; `kind[J1, h2]` with a cyclic error's harmonic."""
+    h = f.get("harmonic")
+    return f"{f['kind']}[{','.join(f.get('joints') or [])}{'' if h is None else f', h{h}'}]"
 
 
 def _nested(f: dict, a: dict) -> bool:
