@@ -545,6 +545,8 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
         say(f"Evidence: {f['evidence']}", 5)
     if not findings:
         say("Named cause: none. " + (d.get("explanation", "").split(". ", 1)[-1] if d else ""), 3)
+    for note in (d.get("notes") or []) if findings else []:  # without findings the explanation above carries them
+        say(f"Note: {note.rstrip('.')}.", 3)
     gain = 100.0 * (geo_val["rms_mm"] - ext_val["rms_mm"]) / geo_val["rms_mm"]
     if findings:
         say(f"Gain of the extended model on the validation poses: {gain:.1f} % ({fmm(geo_val['rms_mm'])} -> "

@@ -84,6 +84,8 @@ def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
         g, floor = d["geometric"]["holdout_rms_mm"], d["noise_floor_mm"]
         # what the geometric model still gets wrong: the answer's own figures
         assert (f"it leaves {g:.3f} mm RMS, {g / floor:.1f}x the noise floor of {floor:.3f} mm") in story
+        for note in d.get("notes") or []:  # what the answer says beside the causes (runs kept, no masses, ...)
+            assert flat(note) in story, note
         for k, f in enumerate(d["findings"], 1):
             assert (f"Cause {k} [{f['kind']}]") in story
             assert (f"Held-out {f['holdout_rms_before_mm']:.3f} mm -> {f['holdout_rms_after_mm']:.3f} mm, "
