@@ -814,6 +814,12 @@ their centroid): a robot's model error (a warm-up, a re-homing by 3 deg) stays b
 something else (the beam caught elsewhere, a typo of 1000 mm) does not."""
 
 
+def _pose_ids(meas: Measurements, idx: np.ndarray, most: int = 20) -> str:
+    """The poses' point ids (1-based row numbers without), the first `most` of them."""
+    ids = [meas.point_ids[i] if meas.point_ids else str(i + 1) for i in idx]
+    return ", ".join(ids[:most]) + (" ..." if len(ids) > most else "")
+
+
 def runs_probability(k: int, n: int, N: int) -> float:
     """Exact probability that n of N poses in a row, chosen at random, fall into at most k runs of consecutive
     poses: sum_{i<=k} C(n-1, i-1) C(N-n+1, i) / C(N, n)."""
@@ -841,10 +847,8 @@ def _flagged_in_runs(first: Calibration, meas: Measurements) -> str:
     p = runs_probability(k, n, N)
     if p >= RUNS_P:
         return ""
-    ids = [meas.point_ids[j] if meas.point_ids else str(j + 1) for j in out]
     order = "time" if source == "time" else "row (no timestamps)"
-    return (f"{n} pose(s) disagree with the rest by far more than the noise ({', '.join(ids[:20])}"
-            f"{' ...' if n > 20 else ''}), but they are not scattered bad readings: in {order} order they come in "
+    return (f"{n} pose(s) disagree with the rest by far more than the noise ({_pose_ids(meas, out)}), but they are not scattered bad readings: in {order} order they come in "
             f"{k} run(s) of consecutive measurements ({_p(p)} for bad readings placed at random). Something happened "
             f"then (a warm-up, a re-homing, the base or the tracker moved) or in the part of the workspace measured "
             f"then: structure, so they are kept at full weight for the search and the report")
@@ -1067,10 +1071,9 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         if runs:
             notes.append(runs)
         if loss:
-            ids = [meas.point_ids[i] if meas.point_ids else str(i + 1) for i in first.solution.outliers]
-            notes.append(f"{len(ids)} pose(s) disagree with the rest by far more than the noise and were "
-                         f"down-weighted as outliers (Huber loss): {', '.join(ids[:20])}"
-                         f"{' ...' if len(ids) > 20 else ''}")
+            out = first.solution.outliers
+            notes.append(f"{len(out)} pose(s) disagree with the rest by far more than the noise and were "
+                         f"down-weighted as outliers (Huber loss): {_pose_ids(meas, out)}")
     selection = select_geometry(model, meas, loss=loss, folds=folds)
     geo = selection.calibration
     fit = _Fitter(model, meas, loss, folds, selection.free, selection.prior_scale)

@@ -447,11 +447,11 @@ def lookalike_pairs(model: RobotModel, meas: Measurements, effects, findings: li
     MAX_RIVAL_PAIRS."""
     names = lambda e: [model.joint_names[j] for j in e.joints]  # noqa: E731
     pool = effect_candidates(model, meas)[0]
+    # a cause without a named harmonic matches the lowest (the candidates list them in order)
+    same = lambda e, d: (e.kind == d.get("kind") and names(e) == list(d.get("joints", []))  # noqa: E731
+                         and d.get("harmonic", e.harmonic) == e.harmonic)
     out = []
     for f in findings:
-        # a cause without a named harmonic matches the lowest (the candidates list them in order)
-        same = lambda e, d: (e.kind == d.get("kind") and names(e) == list(d.get("joints", []))  # noqa: E731
-                             and d.get("harmonic", e.harmonic) == e.harmonic)
         mine = next((e for e in effects if same(e, f)), None)
         if mine is None:
             continue
