@@ -447,6 +447,22 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     return Candidate(**{**c.__dict__, "effect": best, "label": best.label(model)}), t, alike
 
 
+def _step_gaps(cal: Calibration, meas: Measurements) -> Calibration:
+    """cal with each step in time carrying the gap between the measured poses it falls between: the data place
+    it anywhere in there, and a new pose timed inside the gap may be on either side (uncertainty.py)."""
+    clock, source = session_clock(meas)
+    t = np.sort(clock)
+
+    def placed(e: Effect) -> Effect:
+        if not isinstance(e, SessionStep) or e.source != source or source != "time":
+            return e
+        before, after = t[t < e.at], t[t >= e.at]
+        return dataclasses.replace(e, gap=(float(before[-1]), float(after[0]))) if len(before) and len(after) else e
+
+    effects = tuple(placed(e) for e in cal.effects)
+    return cal if effects == cal.effects else dataclasses.replace(cal, effects=effects)
+
+
 def _refine_step(c, trial, chosen, model, meas, fit, x_ref):
     """Place an accepted step exactly: every gap between consecutive poses in time order near the searched
     one is tried (a fit each), the best by its residual is kept if held-out poses do not object."""
@@ -1131,6 +1147,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     # (a tilted base taken up by the rail's straightness: 0.077 mm held out against a 0.063 mm floor, fresh poses
     # off by twice their std); with structure left, over every held-out pose, since the poses a robust loss set
     # aside are then mostly that structure
+    current = _step_gaps(current, meas)
     h = current.holdout_residual_mm if structure_left else current.holdout_residual_mm[_inliers(current)]
     ms = float(np.mean(h**2)) / _holdout_inflation(current, len(h))  # the parameters' own error is in cov already
     current.unmodelled_mm = float(np.sqrt(max(ms - floor**2, 0.0) / 3.0))

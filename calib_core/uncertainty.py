@@ -15,9 +15,12 @@ of the robot the model does not describe. Directions the data and the prior leav
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from . import kinematics as K
+from .effects import SessionStep
 from .identify import Calibration, _columns, effect_bases
 from .io import Measurements
 
@@ -40,11 +43,34 @@ def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None =
 
 def prediction_cov(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
     """Covariance (N, 3, 3) mm^2 of the predicted point at each pose: the parameters' covariance propagated, plus
-    the unmodelled part the diagnosis measured."""
+    the unmodelled part the diagnosis measured, plus where a step in time may lie between two measured poses."""
     G = prediction_jacobian(cal, joints, columns)
     C = cal.solution.cov
     out = np.einsum("nip,pq,njq->nij", G, C, G)
-    return 0.5 * (out + np.swapaxes(out, 1, 2)) + cal.unmodelled_mm**2 * np.eye(3)
+    return 0.5 * (out + np.swapaxes(out, 1, 2)) + cal.unmodelled_mm**2 * np.eye(3) + _step_places(cal, joints, columns)
+
+
+def _step_places(cal: Calibration, joints, columns: Measurements | None) -> np.ndarray:
+    """(N, 3, 3) mm^2: a pose timed between the two measured poses a step fell between is on the wrong side of it
+    with probability P (SessionStep.misplaced), and then off by the step's whole displacement d: P d d^T (the
+    mean square error, not the variance about the prediction, which is what a z-score divides by)."""
+    q = np.atleast_2d(np.asarray(joints, float))
+    out = np.zeros((len(q), 3, 3))
+    steps = [(e, v) for e, v in zip(cal.effects, cal.effect_values) if isinstance(e, SessionStep) and e.gap]
+    if not steps:
+        return out
+    meas = _columns(q, columns)
+    x = cal.x if cal.x_basis is None else cal.x_basis
+    Jq = K.Chain(cal.model, cal.x, q + cal.robot.effect_offsets(q, meas)[0], cal.R0, meas.labels).joint_jacobian()
+    for e, v in steps:
+        P = e.misplaced(meas)
+        if not P.any():
+            continue
+        on = dataclasses.replace(meas, timestamp=np.full(len(q), np.inf))  # every pose after the step
+        Phi_q, Phi_p = effect_bases(cal.model, on, [e], x, cal.R0)
+        d = np.einsum("nij,njk,k->ni", Jq, Phi_q, v) + np.einsum("nik,k->ni", Phi_p, v)
+        out += P[:, None, None] * d[:, :, None] * d[:, None, :]
+    return out
 
 
 def prediction_std_mm(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:

@@ -31,6 +31,18 @@ class SessionStep(Effect):
     kind = "unexplained"
     at: float = 0.0
     source: str = "time"
+    gap: tuple = ()  # (last time before, first time at or after `at`) among the fitted poses: where the step may be
+
+    def misplaced(self, meas) -> np.ndarray:
+        """(N,) probability that a pose is on the wrong side of the step: the step lies anywhere in `gap` (uniform),
+        so a pose inside it is wrong with the share of the gap between it and `at`'s side; 0 elsewhere and for
+        poses without a time."""
+        if len(self.gap) != 2 or self.source != "time" or meas.timestamp is None:
+            return np.zeros(meas.n_poses)
+        lo, hi = self.gap
+        t = np.asarray(meas.timestamp, float)
+        share = np.clip((t - lo) / max(hi - lo, 1e-300), 0.0, 1.0)
+        return np.where(t >= self.at, 1.0 - share, share) * ((t > lo) & (t < hi))
 
     def after(self, meas) -> np.ndarray:
         if self.source == "time" and meas.timestamp is not None:
