@@ -10,8 +10,10 @@ Like the parameter std, this is conditional on the identified model being the ri
 parameters' estimation error moves the prediction (see identify.UNCERTAINTY_NOTE). When the diagnosis leaves
 held-out structure significantly above the noise floor that no cause in the model explains, that de-noised model
 error (`Calibration.unmodelled_mm`, per axis) is added in quadrature: a prediction cannot be surer than the part
-of the robot the model does not describe. Directions the data and the prior leave undetermined carry no variance in
-`solution.cov` (see solve.py): a prediction along them is not covered.
+of the robot the model does not describe. A step in time found by the diagnosis lies somewhere between two measured
+poses: a pose timed between them carries the step with its chance of being on the wrong side. Directions the data
+and the prior leave undetermined carry no variance in `solution.cov` (see solve.py): a prediction along them is not
+covered.
 """
 from __future__ import annotations
 
