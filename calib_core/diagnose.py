@@ -454,7 +454,7 @@ def _step_gaps(cal: Calibration, meas: Measurements) -> Calibration:
     t = np.sort(clock)
 
     def placed(e: Effect) -> Effect:
-        if not isinstance(e, SessionStep) or e.source != source or source != "time":
+        if not isinstance(e, SessionStep) or e.source != "time" or source != "time":
             return e
         before, after = t[t < e.at], t[t >= e.at]
         return dataclasses.replace(e, gap=(float(before[-1]), float(after[0]))) if len(before) and len(after) else e
@@ -831,7 +831,7 @@ something else (the beam caught elsewhere, a typo of 1000 mm) does not."""
 
 
 def _pose_ids(meas: Measurements, idx: np.ndarray, most: int = 20) -> str:
-    """The poses' point ids (1-based row numbers without), the first `most` of them."""
+    """The poses' point ids (1-based row numbers when the set has none), the first `most` of them."""
     ids = [meas.point_ids[i] if meas.point_ids else str(i + 1) for i in idx]
     return ", ".join(ids[:most]) + (" ..." if len(ids) > most else "")
 
@@ -864,10 +864,11 @@ def _flagged_in_runs(first: Calibration, meas: Measurements) -> str:
     if p >= RUNS_P:
         return ""
     order = "time" if source == "time" else "row (no timestamps)"
-    return (f"{n} pose(s) disagree with the rest by far more than the noise ({_pose_ids(meas, out)}), but they are not scattered bad readings: in {order} order they come in "
-            f"{k} run(s) of consecutive measurements ({_p(p)} for bad readings placed at random). Something happened "
-            f"then (a warm-up, a re-homing, the base or the tracker moved) or in the part of the workspace measured "
-            f"then: structure, so they are kept at full weight for the search and the report")
+    return (f"{n} pose(s) disagree with the rest by far more than the noise ({_pose_ids(meas, out)}), but they "
+            f"are not scattered bad readings: in {order} order they come in {k} run(s) of consecutive measurements "
+            f"({_p(p)} for bad readings placed at random). Something happened then (a warm-up, a re-homing, the "
+            f"base or the tracker moved) or in the part of the workspace measured then: structure, so they are kept "
+            f"at full weight for the search and the report")
 
 
 def _holdout_inflation(cal: Calibration, n_poses: int) -> float:

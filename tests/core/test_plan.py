@@ -199,8 +199,9 @@ def test_a_diagnosis_plan_splits_look_alikes_better_than_random_poses(seed):
                                                      "indistinguishable_from": [{"kind": "cyclic_joint_error",
                                                                                  "joints": ["J4"]}]}])
     assert pairs == [(SCALE, HARMONIC)]
-    named = lookalike_pairs(SPRAY, meas, (SCALE,), [{"kind": "joint_scale", "joints": ["J4"], "indistinguishable_from": [
-        {"kind": "cyclic_joint_error", "joints": ["J4"], "harmonic": 2}]}])
+    h2 = {"kind": "cyclic_joint_error", "joints": ["J4"], "harmonic": 2}
+    named = lookalike_pairs(SPRAY, meas, (SCALE,), [{"kind": "joint_scale", "joints": ["J4"],
+                                                     "indistinguishable_from": [h2]}])
     assert [(a, b.kind, b.joints, b.harmonic) for a, b in named] == [(SCALE, "cyclic_joint_error", (J4,), 2)]
     p = plan(SPRAY, 15, "diagnosis", candidates=FEW, meas=meas, effects=(SCALE,), rivals=pairs, seed=seed)
     rival = p.observability["rivals"][0]
