@@ -212,9 +212,9 @@ def test_a_burst_of_absurd_readings_is_still_outliers(seed):
     meas = null_world(model, seed).campaign(n=120).meas
     m = int(rng.integers(4, 9))
     k = int(rng.integers(0, meas.n_poses - m))
-    d = rng.normal(size=(m, 3))
+    way = rng.normal(size=(m, 3))
     points = meas.points.copy()
-    points[k:k + m] += d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(200.0, 2000.0, (m, 1))
+    points[k:k + m] += way / np.linalg.norm(way, axis=1, keepdims=True) * rng.uniform(200.0, 2000.0, (m, 1))
     d = diagnose(model, dataclasses.replace(meas, points=points))
     bad = set(meas.point_ids[k:k + m])
     assert d.loss == "huber" and bad <= set(d.calibration.metrics()["outliers"]), (seed, m, k, d.notes)
