@@ -98,13 +98,13 @@ class CompensateIn(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"targets": [[-2821.34, 876.61, -16.36]], "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]},
         {"program_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]], "locked_joints": ["J6"]}]})
-    targets: list[Row] | None = Field(None, max_length=MAX_POSES,
+    targets: list[Row] | None = Field(None, min_length=1, max_length=MAX_POSES,
                                                description="N x 3 points in the measurement frame, model length unit")
-    seed_joints: list[Row] | None = Field(None, max_length=MAX_POSES,
+    seed_joints: list[Row] | None = Field(None, min_length=1, max_length=MAX_POSES,
                                                    description="N x n joints the program would use (the nominal "
                                                                "solution), model units: the answer stays nearest them")
     program_joints: list[Row] | None = Field(
-        None, max_length=MAX_POSES, description="instead of targets: a program as joints only; the answer makes the "
+        None, min_length=1, max_length=MAX_POSES, description="instead of targets: a program as joints only; the answer makes the "
         "real robot reach where the nominal model puts the tool (nominal model in the calibrated base frame)")
     locked_joints: list[str] = Field(default_factory=list, max_length=MAX_ROW, description="joint names held at the seed (for a "
                                      "redundant robot, e.g. the telescopic J6 of the spray robot)")

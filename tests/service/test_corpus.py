@@ -414,6 +414,8 @@ POSE = [2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]
     ("compensate", {"targets": [[1e305, 0, 0]], "seed_joints": [POSE]}, "body.targets[0][0]", "100 m"),
     ("compensate", {"targets": [[0, 0, 0]], "seed_joints": [POSE[:6] + [1e9]]}, "body.seed_joints[0][6]", "far outside"),
     ("compensate", {"program_joints": [["1"] * 7]}, "body.program_joints.0.0", "number"),
+    ("compensate", {"tau": None, "program_joints": [], "target": []}, "body.program_joints", "at least 1"),
+    ("compensate", {"targets": [], "seed_joints": []}, "body.targets", "at least 1"),
 ])
 def test_predict_and_compensate_take_plausible_numbers_only(server, calibration_id, call, body, field, words):
     r = server.client.post(f"/calibrations/{calibration_id}/{call}", json=body)
