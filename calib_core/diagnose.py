@@ -896,7 +896,9 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
     if has_loads(model, meas):
         loaded = [j for j in range(model.n_joints) if j in load_pool] or list(np.flatnonzero(model.moving))
         fams.append(JointCompliance(tuple(loaded)))
-    steps = step_candidates(meas, [])
+    # the whole robot shifted, or one joint's zero (a re-homing: a joint offset moves each pose differently, which
+    # a rigid shift of the late poses hardly follows)
+    steps = step_candidates(meas, list(np.flatnonzero(model.moving)))
     ranked, _ = screen(cal, meas, sigma, fams + steps, x_ref, alpha)
     n_tests = len(fams) + 1
     out, seen_step = [], False
