@@ -396,9 +396,5 @@ def _solve_3x3(Jz: np.ndarray, e: np.ndarray, Jpull: np.ndarray) -> np.ndarray:
 
 def _point_and_jacobian(robot: CalibratedRobot, q: np.ndarray, cols: Measurements):
     """The calibrated prediction (exactly `robot.predict(q, cols)`) and dp/dq at the effective joints."""
-    if not robot.effects:
-        ch = K.Chain(robot.model, robot.x, q, robot.R0, cols.labels)
-        return ch.p, ch.joint_jacobian()
-    dq, dp = robot.effect_offsets(q, cols)
-    ch = K.Chain(robot.model, robot.x, q + dq, robot.R0, cols.labels)
+    ch, dp = robot.chain(q, cols)
     return ch.p + dp, ch.joint_jacobian()

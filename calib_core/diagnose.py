@@ -28,7 +28,7 @@ from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJoint
                               mass_step, payload_load)
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
-from .effects.structure import probes, session_clock, step_candidates
+from .effects.structure import at_gap, probes, session_clock, step_candidates
 from .identify import Calibration, effect_bases, identify
 from .select import select_geometry
 from .solve import OUTLIER_U
@@ -234,8 +234,7 @@ def model_error_mm(cal: Calibration, floor: float) -> float:
 def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray):
     """Weighted residual (m,), orthonormal basis of the current model's Jacobian (m, r), and the chain."""
     model = cal.model
-    dq, dp = cal.robot.effect_offsets(meas.joints, meas) if cal.effects else (0.0, 0.0)
-    chain = K.Chain(model, cal.x, meas.joints + dq, cal.R0, meas.labels)
+    chain, dp = cal.robot.chain(meas.joints, meas)
     r = (meas.points - chain.p - dp) / sigma[:, None]
     cols = [chain.jacobian()[:, :, cal.free]]
     if cal.effects:
@@ -447,22 +446,6 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     return Candidate(**{**c.__dict__, "effect": best, "label": best.label(model)}), t, alike
 
 
-def _step_gaps(cal: Calibration, meas: Measurements) -> Calibration:
-    """cal with each step in time carrying the gap between the measured poses it falls between: the data place
-    it anywhere in there, and a new pose timed inside the gap may be on either side (uncertainty.py)."""
-    clock, source = session_clock(meas)
-    t = np.sort(clock)
-
-    def placed(e: Effect) -> Effect:
-        if not isinstance(e, SessionStep) or e.source != "time" or source != "time":
-            return e
-        before, after = t[t < e.at], t[t >= e.at]
-        return dataclasses.replace(e, gap=(float(before[-1]), float(after[0]))) if len(before) and len(after) else e
-
-    effects = tuple(placed(e) for e in cal.effects)
-    return cal if effects == cal.effects else dataclasses.replace(cal, effects=effects)
-
-
 def _refine_step(c, trial, chosen, model, meas, fit, x_ref):
     """Place an accepted step exactly: every gap between consecutive poses in time order near the searched
     one is tried (a fit each), the best by its residual is kept if held-out poses do not object."""
@@ -472,8 +455,7 @@ def _refine_step(c, trial, chosen, model, meas, fit, x_ref):
     gaps = range(max(k - STEP_WINDOW, 1), min(k + STEP_WINDOW, len(order) - 1) + 1)
     best = None
     for i in gaps:
-        at = float(0.5 * (order[i - 1] + order[i])) if c.effect.source == "time" else float(i)
-        e = dataclasses.replace(c.effect, at=at)
+        e = dataclasses.replace(c.effect, **at_gap(order, i, c.effect.source))
         rss = float(np.sum(fit(chosen + [e], x_ref, folds=0).solution.residual ** 2))
         if best is None or rss < best[0]:
             best = (rss, e)
@@ -653,8 +635,7 @@ class _LoadFeatures:
 
 def _joint_columns(cal: Calibration, meas: Measurements) -> np.ndarray:
     """How the measured point moves per unit of each joint (N, 3, n), on cal's geometry with its effects."""
-    dq = cal.robot.effect_offsets(meas.joints, meas)[0] if cal.effects else 0.0
-    return K.Chain(cal.model, cal.x, meas.joints + dq, cal.R0, meas.labels).joint_jacobian()
+    return cal.robot.chain(meas.joints, meas)[0].joint_jacobian()
 
 
 def _joint_offsets(col: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1086,7 +1067,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     if loss == "auto":
         first = identify(model, meas, loss="huber", folds=0)
         runs = _flagged_in_runs(first, meas)
-        loss = "huber" if len(first.solution.outliers) and not _play_not_outliers(first, meas) and not runs else None
+        loss = "huber" if len(first.solution.outliers) and not runs and not _play_not_outliers(first, meas) else None
         if runs:
             notes.append(runs)
         if loss:
@@ -1150,7 +1131,6 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     # (a tilted base taken up by the rail's straightness: 0.077 mm held out against a 0.063 mm floor, fresh poses
     # off by twice their std); with structure left, over every held-out pose, since the poses a robust loss set
     # aside are then mostly that structure
-    current = _step_gaps(current, meas)
     h = current.holdout_residual_mm if structure_left else current.holdout_residual_mm[_inliers(current)]
     ms = float(np.mean(h**2)) / _holdout_inflation(current, len(h))  # the parameters' own error is in cov already
     current.unmodelled_mm = float(np.sqrt(max(ms - floor**2, 0.0) / 3.0))

@@ -63,6 +63,14 @@ class CalibratedRobot:
         ctx = Context(self.model, K.Chain(self.model, x, joints, self.R0, meas.labels), meas)
         return apply(list(self.effects), list(self.effect_values), ctx)
 
+    def chain(self, joints: np.ndarray, columns: Measurements | None = None) -> tuple[K.Chain, np.ndarray | float]:
+        """The chain a prediction runs on (the calibrated geometry at the joints plus the effects' offsets) and the
+        effects' displacements (N, 3) mm (0 without effects): chain.p + dp is `predict`, and its Jacobians are the
+        derivatives of the prediction."""
+        labels = None if columns is None else columns.labels
+        dq, dp = self.effect_offsets(joints, columns) if self.effects else (0.0, 0.0)
+        return K.Chain(self.model, self.x, joints + dq, self.R0, labels), dp
+
     def predict(self, joints: np.ndarray, columns: Measurements | None = None) -> np.ndarray:
         """Measured point (N, 3) mm in the measurement frame for row values (N, n) in internal units.
 

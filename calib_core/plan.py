@@ -46,12 +46,13 @@ from . import kinematics as K
 from .diagnose import INDISTINGUISHABLE
 from .effects import Effect, candidates as effect_candidates
 from .identifiability import analyse, structural
-from .identify import CalibratedRobot, Calibration, effect_bases, identify
+from .identify import CalibratedRobot, Calibration, identify
 from .instruments import instrument
 from .io import Measurements
 from .model import RobotModel
 from .statics import joint_loads
 from .twin import sample_uniform
+from .uncertainty import prediction_jacobian
 
 PURPOSES = ("geometric", "diagnosis")
 CANDIDATES = 20000
@@ -475,26 +476,14 @@ def _columns_like(meas: Measurements, q: np.ndarray, labels: K.Labels | None, rn
                         setup_names=meas.setup_names)
 
 
-def _prediction_jacobian(cal: Calibration, cols: Measurements) -> np.ndarray:
-    """d(prediction)/d(the calibration's free parameters), (N, 3, p): geometry and effects (the coupled Jacobian)."""
-    model = cal.model
-    dq = cal.robot.effect_offsets(cols.joints, cols)[0] if cal.effects else 0.0
-    chain = K.Chain(model, cal.x, cols.joints + dq, cal.R0, cols.labels)
-    J = chain.jacobian()[:, :, cal.free]
-    if not cal.effects:
-        return J
-    Pq, Pp = effect_bases(model, cols, list(cal.effects), cal.x_basis, cal.R0)
-    return np.concatenate([J, np.einsum("nij,njk->nik", chain.joint_jacobian(), Pq) + Pp], axis=2)
-
-
 def _discrimination(truth: Calibration, rival: Calibration, meas: Measurements, cols: Measurements,
                     sigma_c: np.ndarray) -> _Sequential:
     """T-criterion state: the data follow `truth`, `rival` is refitted (linearised) to the set and new poses."""
     sigma_e = np.hypot(meas.noise_sigma_mm(), REPEATABILITY_MM)[:, None]
     d_e = (truth.predict(meas.joints, meas) - rival.predict(meas.joints, meas)) / sigma_e
     d_c = (truth.predict(cols.joints, cols) - rival.predict(cols.joints, cols)) / sigma_c[:, None]
-    J_e, scale = _scaled(_prediction_jacobian(rival, meas) / sigma_e[..., None])
-    J_c = _prediction_jacobian(rival, cols) / sigma_c[:, None, None] / scale
+    J_e, scale = _scaled(prediction_jacobian(rival, meas.joints, meas) / sigma_e[..., None])
+    J_c = prediction_jacobian(rival, cols.joints, cols) / sigma_c[:, None, None] / scale
     state = _Sequential(J_c, np.einsum("nip,niq->pq", J_e, J_e) + RIDGE * np.eye(len(scale)),
                         np.einsum("nip,ni->p", J_e, d_e), d_c)
     state.lack_of_fit = float(((d_e - J_e @ state.theta) ** 2).sum())

@@ -63,7 +63,7 @@ def _step_places(cal: Calibration, joints, columns: Measurements | None) -> np.n
         return out
     meas = _columns(q, columns)
     x = cal.x if cal.x_basis is None else cal.x_basis
-    Jq = K.Chain(cal.model, cal.x, q + cal.robot.effect_offsets(q, meas)[0], cal.R0, meas.labels).joint_jacobian()
+    Jq = cal.robot.chain(q, meas)[0].joint_jacobian()
     for e, v in steps:
         P = e.misplaced(meas)
         if not P.any():

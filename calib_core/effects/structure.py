@@ -31,7 +31,7 @@ class SessionStep(Effect):
     kind = "unexplained"
     at: float = 0.0
     source: str = "time"
-    gap: tuple = ()  # (last time before, first time at or after `at`) among the fitted poses: where the step may be
+    gap: tuple = ()  # (the times of the measured poses either side of `at`): where the step may be
 
     def misplaced(self, meas) -> np.ndarray:
         """(N,) probability that a pose is on the wrong side of the step: the step lies anywhere in `gap` (uniform),
@@ -95,10 +95,18 @@ def step_candidates(meas, joints: list[int], n_splits: int = 16, margin: int = 8
     idx = np.unique(np.linspace(margin, N - margin, n_splits).astype(int))
     out = []
     for i in idx:
-        at = float(0.5 * (order[i - 1] + order[i])) if source == "time" else float(i)
-        out.append(SessionStep((), at=at, source=source))
-        out += [SessionStep((j,), at=at, source=source) for j in joints]
+        place = at_gap(order, i, source)
+        out.append(SessionStep((), source=source, **place))
+        out += [SessionStep((j,), source=source, **place) for j in joints]
     return out
+
+
+def at_gap(order: np.ndarray, i: int, source: str) -> dict:
+    """Where a step between the poses i - 1 and i of the sorted clock goes: halfway in time, and the gap it may lie
+    anywhere in (the poses' times); by row number without timestamps."""
+    if source != "time":
+        return {"at": float(i)}
+    return {"at": float(0.5 * (order[i - 1] + order[i])), "gap": (float(order[i - 1]), float(order[i]))}
 
 
 @dataclass(frozen=True)
