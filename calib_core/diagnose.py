@@ -805,6 +805,10 @@ def _play_not_outliers(first: Calibration, meas: Measurements) -> bool:
 RUNS_P = 1e-4
 """Poses a robust fit flags are structure in time, not bad readings, when they fall into so few runs of consecutive
 measurements that randomly placed bad readings would do so with less than this probability..."""
+SESSION_END = 0.05
+"""...and reach into the first or the last 5 % of the session: a warm-up starts it, a re-homing or a moved base
+lasts to its end; a burst in the middle that ends again is bad readings (6 readings 20 mm off mid-session, kept at
+full weight, left a clean spray7 17x the noise off on fresh poses)..."""
 ABSURD_SHARE = 0.05
 """...unless one is off by more than this share of the measured workspace's size (RMS distance of the points from
 their centroid): a robot's model error (a warm-up, a re-homing by 3 deg) stays below it, a burst of readings of
@@ -840,6 +844,8 @@ def _flagged_in_runs(first: Calibration, meas: Measurements) -> str:
     rank = np.empty(N, int)
     rank[np.argsort(clock, kind="stable")] = np.arange(N)
     at = np.sort(rank[out])
+    if at[0] > SESSION_END * N and at[-1] < (1.0 - SESSION_END) * N - 1:
+        return ""  # a burst mid-session that ends again (a knocked SMR re-seated): bad readings, not a step
     k = 1 + int(np.sum(np.diff(at) > 1))
     p = runs_probability(k, n, N)
     if p >= RUNS_P:
