@@ -108,4 +108,6 @@ def test_telescopic_stage_bends_more_when_extended(seed):
     q_short[:, 5], q_long[:, 5] = 1700.0, 2300.0
     short = np.linalg.norm(world.displacement(beam, q_short), axis=1)
     long = np.linalg.norm(world.displacement(beam, q_long), axis=1)
-    assert np.all(long > short)
+    # at a rare pose the moment of the wrist's offset mass opposes the weight's bending and the longer beam ends
+    # nearer (seed 482112714, 1 pose of 40: 0.011 -> 0.006 mm); over 300 seeds at least 97.5 % of poses bend more
+    assert np.mean(long > short) >= 0.9 and np.sqrt(np.mean(long**2)) > 2.0 * np.sqrt(np.mean(short**2)), seed
