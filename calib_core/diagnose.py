@@ -342,15 +342,26 @@ def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
 
 
 def holdout_gain(before: Calibration, after: Calibration) -> tuple[float, float]:
-    """One-sided paired test over poses that the k-fold held-out error dropped: (p-value, drop of the mean
-    square held-out distance in mm^2)."""
+    """One-sided paired test over poses that the k-fold held-out error dropped: (p-value, mean drop of the squared
+    held-out distance in mm^2). Two tests of the per-pose drops, Bonferroni for both: a t-test (a gain on a few
+    poses, as a play's switch gives) and a Wilcoxon signed-rank test (a gain on most poses while one pose the old
+    model missed by 15 mm swells the t-test's variance: the iiwa's upright pose)."""
     keep = _inliers(before, after)
     d = before.holdout_residual_mm[keep] ** 2 - after.holdout_residual_mm[keep] ** 2
     drop = float(d.mean())
     sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
     if sd <= 0.0:
         return (0.0 if drop > 0 else 1.0), drop
-    return float(stats.t.sf(drop / (sd / np.sqrt(len(d))), len(d) - 1)), drop
+    p_mean = float(stats.t.sf(drop / (sd / np.sqrt(len(d))), len(d) - 1))
+    p_rank = float(stats.wilcoxon(d, alternative="greater").pvalue)
+    return min(1.0, 2.0 * min(p_mean, p_rank)), drop
+
+
+def _better(before: Calibration, after: Calibration, alpha: float) -> bool:
+    """Held-out poses show `after` better: the paired test significant at alpha and the mean square lower (the rank
+    test alone can favour a model that wins a little on most poses and loses much on a few)."""
+    p, drop = holdout_gain(before, after)
+    return p < alpha and drop > 0
 
 
 def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref, share=None):
@@ -367,7 +378,7 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
     best_fit = tried[0][1]
     # parsimony: the simplest form that held-out poses cannot show to be worse than the best one
     by_size = sorted(tried, key=lambda t: (len(t[0].effect.parameter_names(model)), t[1].metrics()["holdout_rms_mm"]))
-    pick = next(t for t in by_size if t is tried[0] or holdout_gain(t[1], best_fit)[0] > 0.05)
+    pick = next(t for t in by_size if t is tried[0] or not _better(t[1], best_fit, 0.05))
     tried.remove(pick)
     tried.insert(0, pick)
     best = tried[0][1].metrics()["holdout_rms_mm"]
@@ -432,14 +443,13 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
         except ValueError:
             continue
         tried.append((alt, t))
-        p, drop = holdout_gain(trial, t)
-        if p < REFINE_ALPHA and drop > 0:
+        if _better(trial, t, REFINE_ALPHA):
             better.append((alt, t))
     best, t = min(better, key=lambda at: at[1].metrics()["holdout_rms_mm"]) if better else (c.effect, trial)
     h = t.metrics()["holdout_rms_mm"]
     alike = [{**_who(a, model), "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
              for a, ta in tried if a is not best and a.kind != best.kind
-             and (ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h or holdout_gain(ta, t)[0] > 0.05)]
+             and (ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h or not _better(ta, t, 0.05))]
     alike = list({(a["kind"], tuple(a["joints"]), a.get("harmonic")): a for a in alike}.values())  # one per cause
     if best is c.effect:
         return c, trial, alike
@@ -474,7 +484,7 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
     while k < len(chosen):
         others = chosen[:k] + chosen[k + 1:]
         base = fit(others, current.x)
-        if holdout_gain(base, current)[0] > HOLDOUT_ALPHA:  # the others explain what it did: it goes
+        if not _better(base, current, HOLDOUT_ALPHA):  # the others explain what it did: it goes
             del chosen[k], findings[k]
             current = base
             continue
@@ -859,8 +869,11 @@ def _flagged_in_runs(first: Calibration, meas: Measurements) -> str:
 
 
 def _holdout_inflation(cal: Calibration, n_poses: int) -> float:
-    """Expected held-out mean square over the floor's for a right model: held-out poses carry the error of the
-    parameters fitted without them too (p parameters, n poses)."""
+    """Held-out mean square over the floor's that counts as a right model: held-out poses carry the error of the
+    p parameters fitted without them too. The exact share is p / (3 n_train - p) (6 spray7 twins with no effect,
+    p = 27: held-out / true noise 1.03-1.10, this 1.08); this takes about three times it (1.19), which also covers
+    an assumed floor some 10 % low. With the exact share, floor error was read as model error: prediction z on
+    twins the model describes exactly fell to 0.70-0.77 (gear error, joint spring; RESULTS 3.2)."""
     p = len(cal.solution.x)
     return 1.0 + p / max(n_poses - p / 3.0, 1.0)
 
@@ -1280,7 +1293,7 @@ def explain(d: Diagnosis, model: RobotModel) -> str:
     caveat = (f" This pose set cannot identify {len(gaps)} parameter(s) ({', '.join(gaps[:6])}"
               f"{', ...' if len(gaps) > 6 else ''}): the model is valid only near the measured poses."
               if gaps else "")
-    tail = (" " + " ".join(d.notes)) if d.notes else ""
+    tail = (" " + " ".join(n if n.endswith(".") else n + "." for n in d.notes)) if d.notes else ""
     if not d.findings:
         if d.floor_basis == "residual":
             return head + " No cause was found and the residual follows nothing." + caveat + tail

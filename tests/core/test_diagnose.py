@@ -5,8 +5,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calib_core.diagnose import (ALPHA, NAMED_SHARE, _Fitter, _identified_backlash, diagnose, holdout_ms,
-                                 noise_floor_mm, runs_probability, screen)
+from calib_core.diagnose import (ALPHA, NAMED_SHARE, _Fitter, _identified_backlash, diagnose, holdout_gain,
+                                 holdout_ms, noise_floor_mm, runs_probability, screen)
 from calib_core.effects import CyclicJointError, candidates
 from calib_core.identify import CalibratedRobot, evaluate, identify
 from calib_core.model import parse_model
@@ -251,6 +251,34 @@ def test_the_chance_of_so_few_runs_is_exact(seed):
     for kk in np.unique(k)[:4]:
         assert runs_probability(kk, n, N) == pytest.approx(np.mean(k <= kk), abs=0.01), (kk, n, N, seed)
     assert runs_probability(n, n, N) == pytest.approx(1.0)
+
+
+def _held_out(distances_mm):
+    """What holdout_gain reads of a calibration: its held-out distances and the poses it named as outliers."""
+    from types import SimpleNamespace
+    return SimpleNamespace(holdout_residual_mm=np.asarray(distances_mm, float),
+                           solution=SimpleNamespace(outliers=np.zeros(0, int)))
+
+
+def test_the_held_out_test_sees_a_broad_gain_a_few_poses_and_nothing(seed):
+    """The paired held-out test behind every accepted cause: a gain on most poses is significant even when one pose
+    the old model missed by 15 mm dominates the variance (the iiwa's upright pose: the t-test alone said p ~ 0.15);
+    a gain on 10 poses of 120-300 (a play's switch) is significant; two models of the same noise are not, at about the
+    nominal rate."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(120, 300))
+    before = np.abs(rng.normal(0.5, 0.15, n))
+    broad = before * rng.uniform(0.8, 0.9, n)
+    before[0], broad[0] = rng.uniform(12.0, 20.0), 1.0
+    assert holdout_gain(_held_out(before), _held_out(broad))[0] < 1e-3, seed
+    few = np.abs(before + rng.normal(0.0, 0.05, n))
+    hit = rng.choice(np.arange(1, n), 10, replace=False)
+    before_few = before.copy()
+    before_few[hit] += rng.uniform(1.5, 2.5, 10)
+    assert holdout_gain(_held_out(before_few), _held_out(few))[0] < 1e-2, seed
+    same = [holdout_gain(_held_out(np.abs(rng.normal(0, 0.1, n))), _held_out(np.abs(rng.normal(0, 0.1, n))))[0]
+            for _ in range(400)]
+    assert np.mean(np.array(same) < 0.05) <= 0.07, (seed, np.mean(np.array(same) < 0.05))
 
 
 def test_a_smooth_field_explains_no_noise_beyond_chance(seed):
