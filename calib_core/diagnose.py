@@ -921,17 +921,13 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
     return out
 
 
-def _one_cause(e: Effect) -> tuple | None:
-    """A joint's play or compliance is one cause whatever its form (sharp or soft, on the mass data or the identified
-    load, linear or stiffening): its forms replace each other (_refine), never add up. A second play on a joint,
-    soft beside a sharp one, passed the held-out test on one arm6 world while it doubled the error on fresh poses."""
+def _cause(e: Effect):
+    """What a candidate is a form of: a joint's play or compliance is one cause whatever its form (sharp or soft, on
+    the mass data or the identified load, linear or stiffening), so its forms replace each other (_refine), never add
+    up (a soft play beside a sharp one passed the held-out test on one arm6 world and doubled the error on fresh
+    poses); any other cause is itself on the model's mass data."""
     if isinstance(e, (Backlash, JointCompliance, LoadCompliance)) and len(e.joints) == 1:
         return e.kind, e.joints
-    return None
-
-
-def _bare(e: Effect) -> Effect:
-    """The candidate a cause came from: the same cause on the model's mass data."""
     return dataclasses.replace(e, masses=()) if getattr(e, "masses", ()) else e
 
 
@@ -968,9 +964,8 @@ class _Search:
     def _round(self) -> bool:
         """One round: screen every candidate not in the model, accept the first (by BIC) held-out poses confirm."""
         model, meas, sigma, alpha, fit, x_ref = self.model, self.meas, self.sigma, self.alpha, self.fit, self.x_ref
-        taken = {_bare(e) for e in self.chosen}
-        forms = {_one_cause(e) for e in self.chosen} - {None}
-        pool = [e for e in self.pool if _bare(e) not in taken and _one_cause(e) not in forms]
+        taken = {_cause(e) for e in self.chosen}
+        pool = [e for e in self.pool if _cause(e) not in taken]
         ranked, field_share = screen(self.current, meas, sigma, pool, x_ref, alpha)
         thresholds = _thresholds(pool, alpha)
         # a play whose switch follows the identified load, on the joints where a load-driven cause shows
@@ -978,8 +973,8 @@ class _Search:
                   and c.effect.joints[0] in self.load_pool
                   and isinstance(c.effect, (JointCompliance, LoadCompliance, Backlash))
                   and c.log_p <= thresholds[id(c.effect)]}
-        plays = _identified_backlash(self.current, meas, sigma, x_ref, sorted(j for j in active if not any(
-            isinstance(e, Backlash) and e.joints == (j,) for e in self.chosen)), fit)
+        plays = _identified_backlash(self.current, meas, sigma, x_ref,
+                                     sorted(j for j in active if ("backlash", (j,)) not in taken), fit)
         play_pool: dict[int, list[Backlash]] = {}
         for b in plays:
             play_pool.setdefault(b.joints[0], []).append(b)
@@ -1139,8 +1134,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             fitted = [f for f in [fit_residual_field(fit, current, chosen, x_ref), _drive_field(fit, chosen, x_ref,
                                                                                                     follows)] if f]
             for t, rf in sorted(fitted, key=lambda f: f[0].metrics()["holdout_rms_mm"]):
-                p_gain, drop = holdout_gain(current, t)
-                if p_gain < HOLDOUT_ALPHA and drop > 0:
+                if _better(current, t, HOLDOUT_ALPHA):
                     trial = (t, rf)
                     break
             findings.append(_unexplained_finding(model, current, trial, floor, follows, basis))
