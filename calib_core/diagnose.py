@@ -26,6 +26,7 @@ from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance
 from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJointCompliance, _as_tuple,
                               body_parameters, carried_columns, gravity_regressor, lateral_axes, load_mix_for,
                               mass_step, payload_load)
+from .effects.joint_effects import LOAD_DOUBT
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import at_gap, probes, session_clock, step_candidates
@@ -696,6 +697,65 @@ def _refold_plays(meas: Measurements, sigma: np.ndarray, cal: Calibration) -> Ca
     return effects
 
 
+SWITCH_WIDTHS = np.r_[0.0, np.logspace(-4, 0, 41)]
+"""The switch widths tried, as shares of the largest |load| on the calibration poses (0: no doubt at all)."""
+SWITCH_LR = 0.5 * stats.chi2.ppf(0.95, 1)
+"""Log-likelihood drop that bounds the width from above (95 % profile likelihood): a few calibration poses near
+the switch cannot show that none is ever on the far flank, so the widest width they allow is taken."""
+
+
+def _switch_width(cal: Calibration, meas: Measurements, i: int) -> float:
+    """Backlash.switch_width of cal's play i (load units): the widest doubt about the load that picks the flank,
+    N(0, width^2), that the calibration poses allow (95 % profile likelihood), each pose's reading of the joint's
+    offset b/2 flank(load + doubt) plus its noise. Mass data 15 % off put a few poses near the switch on the far
+    flank, and fresh poses there are off by the whole play (a spray7 twin: 0.6 mm at a std of 0.02 mm)."""
+    e, v = cal.effects[i], cal.effect_values[i]
+    j = e.joints[0]
+    x = cal.x if cal.x_basis is None else cal.x_basis
+    ctx = Context(cal.model, K.Chain(cal.model, x, meas.joints, cal.R0, meas.labels), meas)
+    load = e.load(ctx)
+    half = 0.5 * v[0]
+    col = _joint_columns(cal, meas)[:, :, j]
+    off, w = _joint_offsets(col, meas.points - cal.predict(meas.joints, meas) + col * (half * e.flank(load))[:, None])
+    sd = _robust_sigma(cal, cal.sigma_mm) / np.sqrt(np.maximum(w, 1e-300))
+
+    def loglik(width: float) -> float:
+        if width == 0:
+            where, weight = e.flank(load)[None], np.ones((1, 1))
+        elif e.transition == 0:  # a sharp switch: this flank or the other
+            P = special.ndtr(-np.abs(load) / width)
+            where, weight = np.array([np.sign(load), -np.sign(load)]), np.array([1.0 - P, P])
+        else:
+            nodes, weight = LOAD_DOUBT
+            where, weight = e.flank(load + width * nodes[:, None]), weight[:, None]
+        return float(special.logsumexp(stats.norm.logpdf(off, half * where, sd), b=weight, axis=0).sum())
+
+    widths = SWITCH_WIDTHS * np.abs(load).max()
+    ll = np.array([loglik(wd) for wd in widths])
+    return float(widths[ll >= ll.max() - SWITCH_LR].max())
+
+
+SWITCH_DRAWS = 20
+"""Resamples (63 % of the calibration poses each) an identified play's switch is found again on."""
+
+
+def _with_switch_doubt(cal: Calibration, meas: Measurements, seed: int = 0) -> None:
+    """Sets every gear play's switch_width in cal and, for a switch identified from the data, the switches found
+    again on resampled poses (Backlash.misplaced): its prediction std then covers the poses near the switch."""
+    plays = [i for i, e in enumerate(cal.effects) if isinstance(e, Backlash)]
+    if not plays:
+        return
+    rng = np.random.default_rng(seed)
+    refold = _refold_plays(meas, cal.sigma_mm, cal)
+    draws = [refold(rng.random(meas.n_poses) < 0.632) for _ in range(SWITCH_DRAWS)] \
+        if any(_identified_play(cal.effects[i]) for i in plays) else []
+    effects = list(cal.effects)
+    for i in plays:
+        found = tuple(d[i].load_coef for d in draws if d[i] is not cal.effects[i] and d[i].load_coef)
+        effects[i] = dataclasses.replace(effects[i], switch_width=_switch_width(cal, meas, i), switch_draws=found)
+    cal.effects = tuple(effects)
+
+
 def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray,
                          joints: list[int], fit: "_Fitter") -> list[Backlash]:
     """Backlash whose switch follows the load identified from the data: per joint, a linear classifier of the
@@ -1149,6 +1209,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             note = f"estimated from the structure-free held-out residual (assumed floor was {floor:.3f} mm)"
             floor, basis = new_floor, "residual"
         structure_left = _excess(current, floor) < alpha  # current or floor has changed
+    _with_switch_doubt(current, meas)
     # predictions carry in their std the held-out error beyond the floor, its unbiased estimate whenever positive:
     # adding it only when significant left the std too small where a cause was explained all but a little
     # (a tilted base taken up by the rail's straightness: 0.077 mm held out against a 0.063 mm floor, fresh poses

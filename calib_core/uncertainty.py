@@ -11,7 +11,8 @@ parameters' estimation error moves the prediction (see identify.UNCERTAINTY_NOTE
 held-out structure significantly above the noise floor that no cause in the model explains, that de-noised model
 error (`Calibration.unmodelled_mm`, per axis) is added in quadrature: a prediction cannot be surer than the part
 of the robot the model does not describe. A step in time found by the diagnosis lies somewhere between two measured
-poses: a pose timed between them carries the step with its chance of being on the wrong side. Directions the data
+poses, and a gear play's switch somewhere near where its load changes sign: a pose there carries the switch's whole
+displacement with its chance of being on the other side. Directions the data
 and the prior leave undetermined carry no variance in `solution.cov` (see solve.py): a prediction along them is not
 covered.
 """
@@ -22,7 +23,7 @@ import dataclasses
 import numpy as np
 
 from . import kinematics as K
-from .effects import SessionStep
+from .effects import Backlash, Context, SessionStep
 from .identify import Calibration, _columns, effect_bases
 from .io import Measurements
 
@@ -45,32 +46,39 @@ def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None =
 
 def prediction_cov(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
     """Covariance (N, 3, 3) mm^2 of the predicted point at each pose: the parameters' covariance propagated, plus
-    the unmodelled part the diagnosis measured, plus where a step in time may lie between two measured poses."""
+    the unmodelled part the diagnosis measured, plus the poses that may be on the other side of a switch."""
     G = prediction_jacobian(cal, joints, columns)
     C = cal.solution.cov
     out = np.einsum("nip,pq,njq->nij", G, C, G)
-    return 0.5 * (out + np.swapaxes(out, 1, 2)) + cal.unmodelled_mm**2 * np.eye(3) + _step_places(cal, joints, columns)
+    return 0.5 * (out + np.swapaxes(out, 1, 2)) + cal.unmodelled_mm**2 * np.eye(3) + _misplaced(cal, joints, columns)
 
 
-def _step_places(cal: Calibration, joints, columns: Measurements | None) -> np.ndarray:
-    """(N, 3, 3) mm^2: a pose timed between the two measured poses a step fell between is on the wrong side of it
-    with probability P (SessionStep.misplaced), and then off by the step's whole displacement d: P d d^T (the
-    mean square error, not the variance about the prediction, which is what a z-score divides by)."""
+def _misplaced(cal: Calibration, joints, columns: Measurements | None) -> np.ndarray:
+    """(N, 3, 3) mm^2: what a switch the model places costs a pose that may be on its other side, the mean square
+    error (not the variance about the prediction, which is what a z-score divides by). A step in time lies
+    somewhere between the two measured poses it fell between: with the chance P of the wrong side
+    (SessionStep.misplaced), the step's whole displacement d, P d d^T. A gear play's flank is in doubt where the
+    load is near zero: the flank factor's mean square error (Backlash.flank_doubt) times the half play's
+    displacement h, m h h^T."""
     q = np.atleast_2d(np.asarray(joints, float))
     out = np.zeros((len(q), 3, 3))
-    steps = [(e, v) for e, v in zip(cal.effects, cal.effect_values) if isinstance(e, SessionStep) and e.gap]
-    if not steps:
+    switches = [(e, v) for e, v in zip(cal.effects, cal.effect_values)
+                if (isinstance(e, SessionStep) and e.gap) or
+                (isinstance(e, Backlash) and (e.switch_width > 0 or e.switch_draws))]
+    if not switches:
         return out
     meas = _columns(q, columns)
     x = cal.x if cal.x_basis is None else cal.x_basis
     Jq = cal.robot.chain(q, meas)[0].joint_jacobian()
-    for e, v in steps:
-        P = e.misplaced(meas)
-        if not P.any():
-            continue
-        on = dataclasses.replace(meas, timestamp=np.full(len(q), np.inf))  # every pose after the step
-        Phi_q, Phi_p = effect_bases(cal.model, on, [e], x, cal.R0)
-        d = np.einsum("nij,njk,k->ni", Jq, Phi_q, v) + np.einsum("nik,k->ni", Phi_p, v)
+    ctx = Context(cal.model, K.Chain(cal.model, x, q, cal.R0, meas.labels), meas)
+    for e, v in switches:
+        if isinstance(e, SessionStep):
+            P = e.misplaced(ctx)
+            other = dataclasses.replace(meas, timestamp=np.full(len(q), np.inf))  # every pose after the step
+            Phi_q, Phi_p = effect_bases(cal.model, other, [e], x, cal.R0)
+            d = np.einsum("nij,njk,k->ni", Jq, Phi_q, v) + np.einsum("nik,k->ni", Phi_p, v)
+        else:
+            P, d = e.flank_doubt(ctx), 0.5 * v[0] * Jq[:, :, e.joints[0]]
         out += P[:, None, None] * d[:, :, None] * d[:, None, :]
     return out
 

@@ -4,9 +4,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.polynomial.hermite_e import hermegauss
+from scipy import special
 
 from ..model import RobotModel
 from .base import Basis, Context, Effect, joint_basis, loads
+
+
+LOAD_DOUBT = (lambda x, w: (x, w / w.sum()))(*hermegauss(40))
+"""Gauss-Hermite nodes and weights of a standard normal: expectations over a load's doubt."""
 
 
 def _offset_unit(model: RobotModel, j: int) -> str:
@@ -79,6 +85,8 @@ class Backlash(Effect):
     load_coef: tuple = ()
     search_dof: int = 0  # parameters spent finding the load from the residual (counted in the F-test)
     fitted_softness: bool = False  # the identified load is in units of the transition (its softness fitted)
+    switch_width: float = 0.0  # 1-sigma of where the load really changes sign (load units; diagnose sets it)
+    switch_draws: tuple = ()  # load_coef of the switch found again on resampled calibration poses (diagnose sets it)
     TRANSITION_SHARE = 0.02  # of the largest load in the calibration data
 
     def parameter_names(self, model):
@@ -92,22 +100,45 @@ class Backlash(Effect):
     def parameter_units(self, model):
         return [_offset_unit(model, self.joints[0])]
 
-    def load(self, ctx: Context) -> np.ndarray:
+    def load(self, ctx: Context, coef: tuple | None = None) -> np.ndarray:
+        """The load whose sign picks the flank, (N,): the model's statics, or the identified load (`coef`, by
+        default load_coef)."""
         j = self.joints[0]
-        if not self.load_coef:
+        coef = self.load_coef if coef is None else coef
+        if not coef:
             return ctx.loads[:, j]
         from .gravity import gravity_regressor, payload_load
 
-        coef = np.asarray(self.load_coef, float)
+        coef = np.asarray(coef, float)
         return gravity_regressor(ctx.chain, j) @ coef[:-1] + coef[-1] * payload_load(ctx.chain, ctx.meas.payload_kg(), j)
+
+    def flank(self, load: np.ndarray) -> np.ndarray:
+        """Where in the play the joint sits at this load, -1 .. 1 (times b/2)."""
+        return np.tanh(load / self.transition) if self.transition > 0 else np.sign(load)
+
+    def flank_doubt(self, ctx: Context) -> np.ndarray:
+        """(N,) mean square error of the flank factor from not knowing where the load really changes sign: the
+        load off by N(0, switch_width^2) (mass data off), or the switches found on resampled poses (an identified
+        load separates the calibration poses in many ways), whichever is the larger. 4 P for a sharp switch
+        (P: the chance of the other flank); near zero load a soft one can miss either flank by half the play."""
+        load = self.load(ctx)
+        s = self.flank(load)
+        out = np.zeros(len(load))
+        if self.switch_width > 0 and self.transition > 0:
+            x, w = LOAD_DOUBT
+            out = w @ (self.flank(load + self.switch_width * x[:, None]) - s) ** 2
+        elif self.switch_width > 0:
+            out = 4.0 * special.ndtr(-np.abs(load) / self.switch_width)
+        if self.switch_draws:
+            out = np.maximum(out, np.mean([(self.flank(self.load(ctx, c)) - s) ** 2 for c in self.switch_draws], axis=0))
+        return out
 
     def basis(self, ctx: Context) -> Basis:
         j = self.joints[0]
         load = self.load(ctx)
-        s = np.tanh(load / self.transition) if self.transition > 0 else np.sign(load)
         N, n = ctx.meas.joints.shape
         how = "identified " if self.load_coef else ""
-        return Basis(joint_basis(N, n, j, 0.5 * s[:, None]), None, load,
+        return Basis(joint_basis(N, n, j, 0.5 * self.flank(load)[:, None]), None, load,
                      f"{how}gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
 
     def explain(self, model):

@@ -33,10 +33,11 @@ class SessionStep(Effect):
     source: str = "time"
     gap: tuple = ()  # (the times of the measured poses either side of `at`): where the step may be
 
-    def misplaced(self, meas) -> np.ndarray:
+    def misplaced(self, ctx: Context) -> np.ndarray:
         """(N,) probability that a pose is on the wrong side of the step: the step lies anywhere in `gap` (uniform),
         so a pose inside it is wrong with the share of the gap between it and `at`'s side; 0 elsewhere and for
         poses without a time."""
+        meas = ctx.meas
         if len(self.gap) != 2 or self.source != "time" or meas.timestamp is None:
             return np.zeros(meas.n_poses)
         lo, hi = self.gap
