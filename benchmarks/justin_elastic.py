@@ -5,13 +5,17 @@ folds, then the causes jointly): joint compliance on the converter's guessed mas
 compliance of every joint, + the mass data identified under both (diagnose._identify_masses). Split s is
 `split_70_30(poses, seed=s)` over recorded poses (both hands of a pose on the same side): s = 0 is
 benchmarks/real_cells.py's split, 1000 + k the k-th split of benchmarks/real_diagnosis.py. --blind adds the
-blind diagnosis (`diagnose` on the calibration part, 5-10 CPU minutes per split) as the last row.
+blind diagnosis (`diagnose` on the calibration part, 5-10 CPU minutes per split) as the last row. --probes asks
+what the fixed forms leave: would the loads taken at the deflected pose (the published model's implicit torque
+equilibrium) or a joint offset that follows the direction each joint last moved in (friction, hysteresis) help?
+Each is fitted linearly beside every parameter of the model, on the calibration part, and judged held out.
 
-    .venv/bin/python -m benchmarks.justin_elastic [--splits 0 1000 1001] [--blind]
+    .venv/bin/python -m benchmarks.justin_elastic [--splits 0 1000 1001] [--blind] [--probes]
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import time
 
@@ -22,13 +26,62 @@ import numpy as np  # noqa: E402
 from benchmarks.accuracy import split_70_30  # noqa: E402
 from benchmarks.real_cells import load  # noqa: E402
 from calib_core import diagnose as DG  # noqa: E402
+from calib_core import kinematics as K  # noqa: E402
 from calib_core.datasets import SHARED_DATASETS  # noqa: E402
 from calib_core.effects import JointCompliance, LateralJointCompliance, candidates  # noqa: E402
 from calib_core.identify import evaluate  # noqa: E402
 from calib_core.select import select_geometry  # noqa: E402
 
 
-def run(split: int, blind: bool = False) -> list[tuple[str, dict, float]]:
+def _mean_mm(r: np.ndarray) -> float:
+    return float(np.linalg.norm(r.reshape(-1, 3), axis=1).mean())
+
+
+def probes(cal, meas, train: np.ndarray) -> list[tuple[str, float, float]]:
+    """(probe, held-out mean of the fixed forms refitted linearly, the same with the probe's columns) in mm: the
+    model's columns are finite differences of its prediction in every parameter; rows `train` fit, the rest judge."""
+    rob = cal.robot
+    q = meas.joints
+
+    def predict(r, equilibrium: int = 0) -> np.ndarray:
+        dq, dp = r.effect_offsets(q, meas)
+        for _ in range(equilibrium):  # the loads taken at the deflected pose
+            dq, dp = r.effect_offsets(q + dq, meas)
+        return K.forward(r.model, r.x, q + dq, r.R0, meas.labels) + dp
+
+    p0 = predict(rob)
+    cols = []
+    for i in range(len(rob.x)):
+        x = rob.x.copy()
+        x[i] += 1e-6
+        cols.append((predict(dataclasses.replace(rob, x=x, x_basis=rob.x_basis)) - p0) / 1e-6)
+    for k, v in enumerate(rob.effect_values):
+        for i in range(len(v)):
+            vals = [w.copy() for w in rob.effect_values]
+            h = max(abs(v[i]), 1e-12) * 1e-4
+            vals[k][i] += h
+            cols.append((predict(dataclasses.replace(rob, effect_values=tuple(vals))) - p0) / h)
+    J = np.stack([c.ravel() for c in cols if np.abs(c).max() > 1e-12], axis=1)
+    J /= np.linalg.norm(J, axis=0)
+    rows = np.repeat(train, 3)
+    y = (meas.points - p0).ravel()
+    prev = np.vstack([q[:2], q[:-2]])  # the pose recorded before (two rows, one per hand, per pose)
+    moving = [j for j in range(q.shape[1]) if np.ptp(q[:, j]) > 1e-9]
+    Jq = cal.robot.chain(q, meas)[0].joint_jacobian()
+    extra = {"loads at the deflected pose (3 fixed-point steps)": (predict(rob, 3) - p0).reshape(-1, 1),
+             "a joint offset by the direction it last moved": np.stack(
+                 [(Jq[:, :, j] * np.sign(q[:, j] - prev[:, j])[:, None]).ravel() for j in moving], axis=1)}
+    out = []
+    for label, X in extra.items():
+        held = []
+        for A in (J, np.hstack([J, X])):
+            c = np.linalg.lstsq(A[rows], y[rows], rcond=1e-10)[0]
+            held.append(_mean_mm((y - A @ c).reshape(-1, 3)[~train]))
+        out.append((label, *held))
+    return out
+
+
+def run(split: int, blind: bool = False, probe: bool = False) -> list[tuple[str, dict, float]]:
     _, model, meas, groups = load("dlr_agile_justin", SHARED_DATASETS)
     ids = np.unique(groups)
     cal, test = split_70_30(len(ids), seed=split)
@@ -51,6 +104,13 @@ def run(split: int, blind: bool = False) -> list[tuple[str, dict, float]]:
     masses = DG._identify_masses(cur, list(chosen), [], model, train, fit, notes)
     out.append(("+ mass data identified under both" + ("" if notes else " (not kept: held-out folds object)"),
                 evaluate(masses, held), time.time() - t0))
+    if probe:
+        rows = np.isin(groups, ids[cal])
+        print(f"split {split}: + mass data identified under both, on its own calibration poses: mean "
+              f"{evaluate(masses, train)['mean_mm']:.2f} mm", flush=True)
+        for label, before, after in probes(masses, meas, rows):
+            print(f"split {split}: probe {label}: held-out mean {before:.3f} -> {after:.3f} mm (the fixed forms "
+                  f"refitted linearly, then with the probe beside them)", flush=True)
     if blind:
         t0 = time.time()
         d = DG.diagnose(model, train)
@@ -64,10 +124,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--splits", type=int, nargs="+", default=[0, 1000, 1001])
     ap.add_argument("--blind", action="store_true", help="also run the blind diagnosis on each split")
+    ap.add_argument("--probes", action="store_true", help="also ask what the fixed forms leave (see the docstring)")
     args = ap.parse_args()
     rows = {}
     for s in args.splits:
-        for label, ev, sec in run(s, args.blind):
+        for label, ev, sec in run(s, args.blind, args.probes):
             rows.setdefault(label, []).append((s, ev, sec))
             print(f"split {s}: {label}: held-out mean {ev['mean_mm']:.2f} / RMS {ev['rms_mm']:.2f} / max "
                   f"{ev['max_mm']:.2f} mm ({sec:.0f} s)", flush=True)

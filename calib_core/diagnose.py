@@ -739,13 +739,13 @@ SWITCH_DRAWS = 20
 """Resamples (63 % of the calibration poses each) an identified play's switch is found again on."""
 
 
-def _with_switch_doubt(cal: Calibration, meas: Measurements, seed: int = 0) -> None:
+def _with_switch_doubt(cal: Calibration, meas: Measurements) -> None:
     """Sets every gear play's switch_width in cal and, for a switch identified from the data, the switches found
-    again on resampled poses (Backlash.misplaced): its prediction std then covers the poses near the switch."""
+    again on resampled poses (Backlash.flank_doubt): its prediction std then covers the poses near the switch."""
     plays = [i for i, e in enumerate(cal.effects) if isinstance(e, Backlash)]
     if not plays:
         return
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(0)  # the same answer for the same data
     refold = _refold_plays(meas, cal.sigma_mm, cal)
     draws = [refold(rng.random(meas.n_poses) < 0.632) for _ in range(SWITCH_DRAWS)] \
         if any(_identified_play(cal.effects[i]) for i in plays) else []
@@ -926,6 +926,20 @@ def _flagged_in_runs(first: Calibration, meas: Measurements) -> str:
             f"({_p(p)} for bad readings placed at random). Something happened then (a warm-up, a re-homing, the "
             f"base or the tracker moved) or in the part of the workspace measured then: structure, so they are kept "
             f"at full weight for the search and the report")
+
+
+def _outlier_note(meas: Measurements, first: np.ndarray, final: np.ndarray) -> str:
+    """Why the fits use the Huber loss, naming the outliers of the final model (those metrics.outliers lists) and
+    the poses the first robust fit of the geometry flagged that the causes found explain."""
+    explained = np.setdiff1d(first, final)
+    text = (f"{len(final)} pose(s) disagree with the model by far more than the noise and were down-weighted as "
+            f"outliers (Huber loss): {_pose_ids(meas, final)}" if len(final) else
+            "the fits use the Huber loss because a robust fit of the geometry alone flagged outliers; no pose is an "
+            "outlier of the final model")
+    if len(explained):
+        text += (f"; the geometric fit had flagged {_pose_ids(meas, explained)} too, which the causes found "
+                 f"explain")
+    return text
 
 
 def _holdout_inflation(cal: Calibration, n_poses: int) -> float:
@@ -1141,23 +1155,20 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     """Geometric fit, then the greedy search for causes; returns the extended calibration and the findings.
     When mass data are identified under the compliances found, the search resumes on them once.
 
-    loss 'auto' fits with the Huber loss when a first robust fit names outliers (they are listed), else
+    loss 'auto' fits with the Huber loss when a first robust fit names outliers (the final model's are listed), else
     with plain least squares; poses flagged in runs of consecutive measurements, none absurdly far off, are
     structure (a warm-up, a re-homing) and stay at full weight (the notes say so)."""
     report = progress or (lambda f, msg: None)
     sigma = meas.noise_sigma_mm()
     report(0.05, "identifying the geometric model")
     notes: list[str] = []
+    first = None
     if loss == "auto":
         first = identify(model, meas, loss="huber", folds=0)
         runs = _flagged_in_runs(first, meas)
         loss = "huber" if len(first.solution.outliers) and not runs and not _play_not_outliers(first, meas) else None
         if runs:
             notes.append(runs)
-        if loss:
-            out = first.solution.outliers
-            notes.append(f"{len(out)} pose(s) disagree with the rest by far more than the noise and were "
-                         f"down-weighted as outliers (Huber loss): {_pose_ids(meas, out)}")
     selection = select_geometry(model, meas, loss=loss, folds=folds)
     geo = selection.calibration
     fit = _Fitter(model, meas, loss, folds, selection.free, selection.prior_scale)
@@ -1218,6 +1229,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     h = current.holdout_residual_mm if structure_left else current.holdout_residual_mm[_inliers(current)]
     ms = float(np.mean(h**2)) / _holdout_inflation(current, len(h))  # the parameters' own error is in cov already
     current.unmodelled_mm = float(np.sqrt(max(ms - floor**2, 0.0) / 3.0))
+    if loss == "huber" and first is not None:
+        notes.insert(0, _outlier_note(meas, first.solution.outliers, current.solution.outliers))
     nominal = selection.calibrations.get("registration") \
         or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
     d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,

@@ -11,10 +11,9 @@ parameters' estimation error moves the prediction (see identify.UNCERTAINTY_NOTE
 held-out structure significantly above the noise floor that no cause in the model explains, that de-noised model
 error (`Calibration.unmodelled_mm`, per axis) is added in quadrature: a prediction cannot be surer than the part
 of the robot the model does not describe. A step in time found by the diagnosis lies somewhere between two measured
-poses, and a gear play's switch somewhere near where its load changes sign: a pose there carries the switch's whole
-displacement with its chance of being on the other side. Directions the data
-and the prior leave undetermined carry no variance in `solution.cov` (see solve.py): a prediction along them is not
-covered.
+poses, and a gear play's switch somewhere near where its load changes sign: a pose there carries what the other side
+would cost with its chance of being there. Directions the data and the prior leave undetermined carry no variance in
+`solution.cov` (see solve.py): a prediction along them is not covered.
 """
 from __future__ import annotations
 

@@ -130,7 +130,8 @@ class Backlash(Effect):
         elif self.switch_width > 0:
             out = 4.0 * special.ndtr(-np.abs(load) / self.switch_width)
         if self.switch_draws:
-            out = np.maximum(out, np.mean([(self.flank(self.load(ctx, c)) - s) ** 2 for c in self.switch_draws], axis=0))
+            drawn = np.mean([(self.flank(self.load(ctx, c)) - s) ** 2 for c in self.switch_draws], axis=0)
+            out = np.maximum(out, drawn)
         return out
 
     def basis(self, ctx: Context) -> Basis:

@@ -336,7 +336,7 @@ def test_a_play_read_off_the_noise_gains_nothing_on_held_out_poses(seed):
 @pytest.mark.slow
 def test_no_cause_means_no_finding(seed):
     """Wrong masses in the model, a robot repeating 2.5x worse than usual and two bad readings: nothing to find,
-    the bad readings are named."""
+    the bad readings are named, in the notes as in the metrics."""
     for k in range(2):
         world = null_world(SPRAY, seed + k, outliers=2)
         camp = world.campaign(n=150)
@@ -347,6 +347,9 @@ def test_no_cause_means_no_finding(seed):
         assert "No cause was found" in d.explanation
         bad = {camp.meas.point_ids[i] for i in camp.truth.outliers}
         assert bad <= set(d.calibration.metrics()["outliers"]), (seed + k, bad, d.calibration.metrics()["outliers"])
+        said = next(n for n in d.notes if "(Huber loss)" in n)  # the notes name the same outliers as the metrics
+        named = set(said.split("(Huber loss): ")[1].split(";")[0].split(", "))
+        assert named == set(d.calibration.metrics()["outliers"]), (seed + k, said, d.calibration.metrics()["outliers"])
         assert _truth_error(world, d.calibration) < TRUTH_LIMIT, seed + k
 
 
