@@ -99,7 +99,7 @@ def _findings(d) -> list[dict]:
     return [{"kind": f["kind"], "joints": list(f["joints"]),
              "indistinguishable_from": [{"kind": a["kind"], "joints": list(a["joints"])}
                                         for a in f.get("indistinguishable_from", [])],
-             "gain_pct": f.get("gain_pct")} for f in d.findings]
+             "gain_pct": f.get("gain_pct"), "physical": f.get("physical", True)} for f in d.findings]
 
 
 def judge(expected: str, hidden: list[str], findings: list[dict]) -> dict:
@@ -390,6 +390,10 @@ def tabulate(records: list[dict], wall_s: float | None = None) -> None:
             found = "; ".join(f"{f['kind']}[{','.join(f['joints'])}]" for f in r["findings"]) or "[]"
             print(f"- {r['robot']} {r['kind']} {r['size']:g}x #{r['draw']}: {r['expected']}[{','.join(r['hidden'])}] "
                   f"-> {found}")
+    odd = [r for r in done + nulls if any(not f.get("physical", True) for f in r["findings"])]
+    print(f"\nDraws with a finding of no physical size (the world's causes all have physical sizes): {len(odd)} of "
+          f"{len(done) + len(nulls)}" + ("".join(f"\n- {r['robot']} {r['kind']} {r.get('size', '')} #{r['draw']}"
+                                            for r in odd[:20])))
     slow = sorted(done + nulls, key=lambda r: -r["seconds"])[:5]
     if slow:
         tag = lambda r: f"{r['robot']}/{r['kind']}" + ("" if r["kind"] == "null" else f" {r['size']:g}x")  # noqa: E731

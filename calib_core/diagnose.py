@@ -928,6 +928,38 @@ def _flagged_in_runs(first: Calibration, meas: Measurements) -> str:
             f"at full weight for the search and the report")
 
 
+PLAUSIBLE_TURN_RAD = 0.1
+"""A gear play, a spring or a bearing turns a joint by a fraction of a degree on an industrial robot, by a few on an
+elastic humanoid (Agile Justin: up to 3 deg); a form that needs more than this (5.7 deg) stands in for something
+else."""
+PLAUSIBLE_TRAVEL_MM = 10.0
+"""The same for a prismatic joint (a rail's or a telescope's play or spring)."""
+
+
+def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> None:
+    """Marks a finding whose form needs an unphysical size at a calibration pose ("physical": false, and its
+    evidence says so): held-out poses confirmed it, so it stays in the model, but its values are not the joint's."""
+    model = cal.model
+    x = cal.x if cal.x_basis is None else cal.x_basis
+    ctx = Context(model, K.Chain(model, x, meas.joints, cal.R0, meas.labels), meas)
+    for f in findings:
+        names = {p["name"] for p in f.get("parameters", [])}
+        sizes = []
+        for e, v in zip(cal.effects, cal.effect_values):
+            if names & set(e.parameter_names(model)):
+                for j, t in e.turns(ctx, v):
+                    big = float(np.abs(t).max())
+                    if big > (PLAUSIBLE_TRAVEL_MM if model.prismatic[j] else PLAUSIBLE_TURN_RAD):
+                        sizes.append(f"{model.joint_names[j]} by up to "
+                                     + (f"{big:.3g} mm" if model.prismatic[j] else f"{np.degrees(big):.3g} deg"))
+        if sizes:
+            f["physical"] = False
+            f["evidence"] += (f"; its size is not physical: it would move {', '.join(sizes)} at a calibration pose, "
+                              f"where a real play, spring or bearing turns a joint by a fraction of a degree. The "
+                              f"form stands in for structure with no name here: it predicts (held-out poses confirm "
+                              f"it), but its values are not the joint's")
+
+
 def _outlier_note(meas: Measurements, first: np.ndarray, final: np.ndarray) -> str:
     """Why the fits use the Huber loss, naming the outliers of the final model (those metrics.outliers lists) and
     the poses the first robust fit of the geometry flagged that the causes found explain."""
@@ -1221,6 +1253,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             floor, basis = new_floor, "residual"
         structure_left = _excess(current, floor) < alpha  # current or floor has changed
     _with_switch_doubt(current, meas)
+    _judge_sizes(current, findings, meas)
     # predictions carry in their std the held-out error beyond the floor, its unbiased estimate whenever positive:
     # adding it only when significant left the std too small where a cause was explained all but a little
     # (a tilted base taken up by the rail's straightness: 0.077 mm held out against a 0.063 mm floor, fresh poses
@@ -1380,8 +1413,9 @@ def explain(d: Diagnosis, model: RobotModel) -> str:
     parts = []
     for f in d.findings:
         who = f" on {', '.join(f['joints'])}" if f["joints"] else ""
+        odd = ", a size no real joint has: a correction, not the cause" if f.get("physical") is False else ""
         parts.append(f"{f['kind'].replace('_', ' ')}{who} (held-out {f['holdout_rms_before_mm']:.3f} -> "
-                     f"{f['holdout_rms_after_mm']:.3f} mm, {f['gain_pct']:.0f} % better)")
+                     f"{f['holdout_rms_after_mm']:.3f} mm, {f['gain_pct']:.0f} % better{odd})")
     final = d.calibration.metrics()["holdout_rms_mm"]
     left = ""
     if any(f["kind"] == "unexplained" for f in d.findings):

@@ -540,7 +540,8 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
             f"{fmm(g['holdout_rms_mm'])} RMS, {ratio:.1f}x the noise floor of {fmm(floor)} (tracker and "
             f"repeatability): {verdict}.", 3)
     for k, f in enumerate(findings, 1):
-        say(f"Cause {k} [{f['kind']}]: {cause_name(f)}. Held-out {fmm(f['holdout_rms_before_mm'])} -> "
+        odd = ", not a physical size" if f.get("physical") is False else ""
+        say(f"Cause {k} [{f['kind']}{odd}]: {cause_name(f)}. Held-out {fmm(f['holdout_rms_before_mm'])} -> "
             f"{fmm(f['holdout_rms_after_mm'])}, {f['gain_pct']:.1f} % better.", 3)
         say(f"Evidence: {f['evidence']}", 5)
     if not findings:

@@ -105,6 +105,15 @@ class Effect:
         """One phrase a process engineer can read."""
         raise NotImplementedError
 
+    def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """How far the effect turns (rad) or moves (mm, a prismatic joint) each joint it acts on at each pose:
+        [(joint, (N,))]; [] for an effect that is not a joint's motion (a field, a step of the whole robot)."""
+        b = self.basis(ctx)
+        if b.joint is None:
+            return []
+        dq = b.joint @ values
+        return [(j, dq[:, j]) for j in self.joints]
+
 
 def joint_basis(n_poses: int, n_joints: int, j: int, columns: np.ndarray) -> np.ndarray:
     """(N, n, k) basis with the k columns (N, k) acting on joint j only."""

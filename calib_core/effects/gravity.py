@@ -12,6 +12,7 @@ geometry cannot absorb are kept (`load_mix`), so the plug-in stays linear in its
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -234,6 +235,22 @@ class LateralJointCompliance(Effect):
     kind = "link_deflection"
     needs = "mass"
     masses: tuple = ()
+    prior: tuple = ()  # ridge prior std per compliance, rad/(N*m) (for_data)
+
+    @classmethod
+    def for_data(cls, joints: tuple, ctx: Context) -> "LateralJointCompliance":
+        """The compliances with a ridge prior of LOAD_PRIOR_RAD on the RMS tilt each gives on these poses: the
+        tilts of a spherical shoulder's three bearings can otherwise cancel at tens of degrees each (Agile Justin:
+        up to 26 deg, RESULTS 3.6)."""
+        e = cls(tuple(joints))
+        moment = e._moments(ctx)
+        rms = [np.sqrt(np.mean((moment[j] * axis).sum(-1) ** 2))
+               for j in e.joints for axis in lateral_axes(ctx.chain, j)]
+        return dataclasses.replace(e, prior=tuple(float(LOAD_PRIOR_RAD / max(r, 1e-12)) for r in rms))
+
+    @property
+    def prior_std(self) -> np.ndarray | float:
+        return np.asarray(self.prior, float) if self.prior else np.inf
 
     def parameter_names(self, model):
         return [f"{model.joint_names[j]}.lateral_compliance_{a}" for j in self.joints for a in "xy"]
@@ -244,10 +261,21 @@ class LateralJointCompliance(Effect):
     def label(self, model):
         return super().label(model) + " lateral" + (" identified masses" if self.masses else "")
 
+    def _moments(self, ctx: Context) -> np.ndarray:
+        """(n, N, 3) N*m: the gravity moment about each joint's axis point."""
+        masses = np.asarray(self.masses, float) if self.masses else None
+        return gravity_moments(ctx.chain, ctx.meas.payload_kg(), masses)
+
+    def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """Each joint's tilt (rad) at each pose: the two lateral compliances times the moments across them."""
+        moment, ch = self._moments(ctx), ctx.chain
+        v = np.asarray(values, float).reshape(-1, 2)
+        return [(j, np.hypot(*[c * (moment[j] * axis).sum(-1) for c, axis in zip(v[k], lateral_axes(ch, j))]))
+                for k, j in enumerate(self.joints)]
+
     def basis(self, ctx: Context) -> Basis:
         ch = ctx.chain
-        masses = np.asarray(self.masses, float) if self.masses else None
-        moment = gravity_moments(ch, ctx.meas.payload_kg(), masses)  # (n, N, 3) N*m about each axis point
+        moment = self._moments(ctx)
         cols = []
         for j in self.joints:
             lever = (ch.p - ch.o_theta[j]) * ch.on_path[j][:, None]  # a branch off the target's way moves nothing

@@ -6,8 +6,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calib_core.diagnose import (ALPHA, NAMED_SHARE, _Fitter, _identified_backlash, diagnose, holdout_gain,
-                                 holdout_ms, noise_floor_mm, runs_probability, screen)
+from calib_core.diagnose import (ALPHA, NAMED_SHARE, PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, _Fitter,
+                                 _identified_backlash, _judge_sizes, diagnose, holdout_gain, holdout_ms,
+                                 noise_floor_mm, runs_probability, screen)
 from calib_core.effects import CyclicJointError, candidates
 from calib_core.identify import CalibratedRobot, evaluate, identify
 from calib_core.model import parse_model
@@ -133,6 +134,7 @@ def test_hidden_cause_is_found_blind(kind, seed):
     f = _named(d.findings, info["expected"], info["joints"]) or _implicated(d.findings, info["expected"], info["joints"])
     assert f is not None, where
     assert f["gain_pct"] > 0, where
+    assert all(g.get("physical", True) for g in d.findings), where  # the world's causes have physical sizes
     # with the cause in the model, fresh poses are predicted closer to the truth than the tracker measures
     ratio = _truth_error(world, d.calibration, info)
     limit = PLAY_TRUTH_LIMIT if kind in PLAYS else BEARINGS_TRUTH_LIMIT if kind == "elastic_bearings" else TRUTH_LIMIT
@@ -427,3 +429,27 @@ def test_without_masses_the_service_says_so(seed):
     model = parse_model(doc)
     d = diagnose(model, World(model, seed).measure(n=100))
     assert any("no masses" in n for n in d.notes)
+
+
+def test_a_cause_of_no_physical_size_is_said_to_be_a_correction(seed):
+    """A play fitted on a drawn joint of a world with a hidden gear play (2-8x the noise), then its value set to a
+    drawn multiple of the plausible turn: up to the limit the finding is physical, beyond it the answer says the
+    size is not physical and names the joint (the iiwa's wrist "play" turned A5 by 75 deg)."""
+    from calib_core.effects import Backlash
+
+    rng = np.random.default_rng(seed)
+    world, info, meas = _world("hard_backlash", _size(seed, 2.0, 8.0), seed)
+    j = SPRAY.joint_names.index(info["joints"][0])
+    cal = identify(SPRAY, meas, effects=(Backlash((j,)),), folds=0)
+    name = f"{SPRAY.joint_names[j]}.backlash"
+    for factor, physical in ((rng.uniform(0.05, 0.9), True), (rng.uniform(1.1, 20.0), False)):
+        # the play is b: the joint moves by b/2 either side; prismatic joints are judged in mm
+        limit = PLAUSIBLE_TRAVEL_MM if SPRAY.prismatic[j] else PLAUSIBLE_TURN_RAD
+        cal.solution.x[-1] = 2.0 * factor * limit
+        finding = {"kind": "backlash", "joints": [SPRAY.joint_names[j]], "parameters": [{"name": name}],
+                   "evidence": "a play"}
+        _judge_sizes(cal, [finding], meas)
+        where = f"play on {SPRAY.joint_names[j]} at {factor:.2f}x the plausible size, seed {seed}: {finding}"
+        assert finding.get("physical", True) is physical, where
+        assert ("not physical" in finding["evidence"]) is (not physical), where
+        assert physical or SPRAY.joint_names[j] in finding["evidence"], where
