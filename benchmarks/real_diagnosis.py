@@ -34,7 +34,8 @@ SETS = {
 
 def _named(f: dict) -> str:
     joints = ",".join(f["joints"])
-    return f"{f['kind']}{' ' + joints if joints else ''}{' h' + str(f['harmonic']) if 'harmonic' in f else ''}"
+    odd = " (not a physical size)" if f.get("physical") is False else ""
+    return f"{f['kind']}{' ' + joints if joints else ''}{' h' + str(f['harmonic']) if 'harmonic' in f else ''}{odd}"
 
 
 def run(name: str, s: int) -> dict:

@@ -12,7 +12,6 @@ geometry cannot absorb are kept (`load_mix`), so the plug-in stays linear in its
 """
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -235,22 +234,6 @@ class LateralJointCompliance(Effect):
     kind = "link_deflection"
     needs = "mass"
     masses: tuple = ()
-    prior: tuple = ()  # ridge prior std per compliance, rad/(N*m) (for_data)
-
-    @classmethod
-    def for_data(cls, joints: tuple, ctx: Context) -> "LateralJointCompliance":
-        """The compliances with a ridge prior of LOAD_PRIOR_RAD on the RMS tilt each gives on these poses: the
-        tilts of a spherical shoulder's three bearings can otherwise cancel at tens of degrees each (Agile Justin:
-        up to 26 deg, RESULTS 3.6)."""
-        e = cls(tuple(joints))
-        moment = e._moments(ctx)
-        rms = [np.sqrt(np.mean((moment[j] * axis).sum(-1) ** 2))
-               for j in e.joints for axis in lateral_axes(ctx.chain, j)]
-        return dataclasses.replace(e, prior=tuple(float(LOAD_PRIOR_RAD / max(r, 1e-12)) for r in rms))
-
-    @property
-    def prior_std(self) -> np.ndarray | float:
-        return np.asarray(self.prior, float) if self.prior else np.inf
 
     def parameter_names(self, model):
         return [f"{model.joint_names[j]}.lateral_compliance_{a}" for j in self.joints for a in "xy"]
