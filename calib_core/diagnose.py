@@ -745,10 +745,10 @@ def _with_switch_doubt(cal: Calibration, meas: Measurements) -> None:
     plays = [i for i, e in enumerate(cal.effects) if isinstance(e, Backlash)]
     if not plays:
         return
-    rng = np.random.default_rng(0)  # the same answer for the same data
-    refold = _refold_plays(meas, cal.sigma_mm, cal)
-    draws = [refold(rng.random(meas.n_poses) < 0.632) for _ in range(SWITCH_DRAWS)] \
-        if any(_identified_play(cal.effects[i]) for i in plays) else []
+    draws = []
+    if any(_identified_play(cal.effects[i]) for i in plays):
+        refold, rng = _refold_plays(meas, cal.sigma_mm, cal), np.random.default_rng(0)  # same data, same answer
+        draws = [refold(rng.random(meas.n_poses) < 0.632) for _ in range(SWITCH_DRAWS)]
     effects = list(cal.effects)
     for i in plays:
         found = tuple(d[i].load_coef for d in draws if d[i] is not cal.effects[i] and d[i].load_coef)

@@ -210,9 +210,9 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
         if not findings:
             w(f"<p><b>No cause found</b>: {_e(d.get('verdict') or 'nothing the data can show beyond the geometric model')}.</p>")
         for k, f in enumerate(findings, 1):
-            odd = ' <span class="tag">not a physical size</span>' if f.get("physical") is False else ""
-            w(f'<div class="finding"><h3>Finding {k}: {_e(finding_title(f))} <span class="tag">{_e(f.get("kind"))}</span>'
-              f'{odd}</h3>')
+            tags = f'<span class="tag">{_e(f.get("kind"))}</span>' + (
+                ' <span class="tag">not a physical size</span>' if f.get("physical") is False else "")
+            w(f'<div class="finding"><h3>Finding {k}: {_e(finding_title(f))} {tags}</h3>')
             w(f'<p>Held-out error {mm(f.get("holdout_rms_before_mm"))} mm → {mm(f.get("holdout_rms_after_mm"))} mm RMS: '
               f'<span class="gain">{pct(f.get("gain_pct"))} better</span>.</p>')
             w(f'<p><b>Evidence.</b> {_e(f.get("evidence"))}</p>')
