@@ -81,8 +81,10 @@ def test_reported_std_matches_spread_over_50_noisy_twins(seed):
         stds.append(cal.solution.std[: len(z)])
     errors, stds = np.array(errors), np.array(stds)
     ratio = np.sqrt((errors**2).mean(0)) / stds.mean(0)  # observed spread / reported std, per parameter
-    assert np.all(np.abs(ratio - 1) < 0.3) or (np.mean(np.abs(ratio - 1) < 0.3) >= 0.9
-                                               and abs(np.sqrt(np.mean(ratio**2)) - 1) < 0.15), (seed, ratio.round(2))
+    # an RMS over 50 twins has a relative sd of about 1/sqrt(100) = 0.1: every parameter within 5 sd (a factor 1.65
+    # either way; a std off by 2x fails), and together within 0.15. Over 100 seeds the worst parameter was 0.66
+    # (seed 1728530160, which failed the former "90 % within 0.3"), the RMS 0.97-1.04 on 40 of them.
+    assert np.abs(np.log(ratio)).max() < 0.5 and abs(np.sqrt(np.mean(ratio**2)) - 1) < 0.15, (seed, ratio.round(2))
 
 
 def test_robust_loss_names_the_outliers_and_ignores_them(seed):
