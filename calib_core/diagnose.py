@@ -956,8 +956,9 @@ def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> 
             f["physical"] = False
             f["evidence"] += (f"; its size is not physical: it would move {', '.join(sizes)} at a calibration pose, "
                               f"where a real play, spring or bearing turns a joint by a fraction of a degree. The "
-                              f"form stands in for structure with no name here: it predicts (held-out poses confirm "
-                              f"it), but its values are not the joint's")
+                              f"data determine what it predicts (held-out poses confirm it), not these values: it "
+                              f"stands in for structure with no name here, or trades one joint's share against "
+                              f"another's, so read it as a correction, not as the joint's")
 
 
 def _outlier_note(meas: Measurements, first: np.ndarray, final: np.ndarray) -> str:
