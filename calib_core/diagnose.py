@@ -203,7 +203,7 @@ class _Fitter:
     def __call__(self, effects=(), x_ref=None, folds: int | None = None) -> Calibration:
         refold = None
         if any(_identified_play(e) for e in effects):
-            refold = lambda cal: _refold_plays(self.meas, cal.sigma_mm, cal)  # noqa: E731
+            refold = lambda cal: _refold_plays(self.meas, cal)  # noqa: E731
         return identify(self.model, self.meas, effects=tuple(effects), loss=self.loss, x_ref=x_ref, free=self.free,
                         prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold)
 
@@ -660,29 +660,43 @@ def _identified_play(e: Effect) -> bool:
     return isinstance(e, Backlash) and bool(e.load_coef)
 
 
-def _refold_plays(meas: Measurements, sigma: np.ndarray, cal: Calibration) -> Callable[[np.ndarray], tuple]:
+def _basis_context(cal: Calibration, meas: Measurements) -> Context:
+    """What cal's effects look at on these poses: the geometry their bases were fitted on."""
+    x = cal.x if cal.x_basis is None else cal.x_basis
+    return Context(cal.model, K.Chain(cal.model, x, meas.joints, cal.R0, meas.labels), meas)
+
+
+def _play_readings(cal: Calibration, meas: Measurements, ctx: Context) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per gear play in cal (by index): its joint's offset read off each pose with the fitted play put back (the
+    residual along the joint's motion) and the reading's weight (1 / variance, noise and robust weights in)."""
+    residual = meas.points - cal.predict(meas.joints, meas)
+    sigma = _robust_sigma(cal, cal.sigma_mm)
+    Jq = _joint_columns(cal, meas)
+    out = {}
+    for i, (e, v) in enumerate(zip(cal.effects, cal.effect_values)):
+        if isinstance(e, Backlash):
+            col = Jq[:, :, e.joints[0]]
+            off, w = _joint_offsets(col, residual + col * (v[0] * e.basis(ctx).joint[:, e.joints[0], 0])[:, None])
+            out[i] = off, w / sigma**2
+    return out
+
+
+def _refold_plays(meas: Measurements, cal: Calibration) -> Callable[[np.ndarray], tuple]:
     """For identify's `refold`: given the training poses of a fold (N,) bool, cal's effects with every identified
     play's switch classified again on those poses alone, from the start the search took (the model's statics, or
     the residual), on the residual with the fitted play put back. The switch was read off the residual, so a
     held-out pose must not have helped place it (started from the full-data switch instead, a fold stays in its
     basin and held-out poses still gain on pure noise). What does not depend on the fold is computed once."""
-    ref = K.Chain(cal.model, cal.x_basis, meas.joints, cal.R0, meas.labels)
-    ctx = Context(cal.model, ref, meas)
-    residual = meas.points - cal.predict(meas.joints, meas)
-    sigma = _robust_sigma(cal, sigma)
-    Jq = _joint_columns(cal, meas)
+    ctx = _basis_context(cal, meas)
     plays = []  # (index in cal.effects, effect, features, offsets, weights, start of the switch)
-    for i, (e, v) in enumerate(zip(cal.effects, cal.effect_values)):
-        if not _identified_play(e):
-            continue
+    for i, (off, wt) in _play_readings(cal, meas, ctx).items():
+        e = cal.effects[i]
         j = e.joints[0]
-        feats = _LoadFeatures.of(ref, meas, j)
+        feats = _LoadFeatures.of(ctx.chain, meas, j) if _identified_play(e) else None
         if feats is None:
             continue
-        col = Jq[:, :, j]
-        off, w = _joint_offsets(col, residual + col * (v[0] * e.basis(ctx).joint[:, j, 0])[:, None])
         start = ctx.loads[:, j] if has_loads(cal.model, meas) else off
-        plays.append((i, e, feats, off, w / sigma**2, start))
+        plays.append((i, e, feats, off, wt, start))
 
     def effects(train: np.ndarray) -> tuple:
         out = list(cal.effects)
@@ -704,20 +718,13 @@ SWITCH_LR = 0.5 * stats.chi2.ppf(0.95, 1)
 the switch cannot show that none is ever on the far flank, so the widest width they allow is taken."""
 
 
-def _switch_width(cal: Calibration, meas: Measurements, i: int) -> float:
-    """Backlash.switch_width of cal's play i (load units): the widest doubt about the load that picks the flank,
-    N(0, width^2), that the calibration poses allow (95 % profile likelihood), each pose's reading of the joint's
-    offset b/2 flank(load + doubt) plus its noise. Mass data 15 % off put a few poses near the switch on the far
-    flank, and fresh poses there are off by the whole play (a spray7 twin: 0.6 mm at a std of 0.02 mm)."""
-    e, v = cal.effects[i], cal.effect_values[i]
-    j = e.joints[0]
-    x = cal.x if cal.x_basis is None else cal.x_basis
-    ctx = Context(cal.model, K.Chain(cal.model, x, meas.joints, cal.R0, meas.labels), meas)
-    load = e.load(ctx)
-    half = 0.5 * v[0]
-    col = _joint_columns(cal, meas)[:, :, j]
-    off, w = _joint_offsets(col, meas.points - cal.predict(meas.joints, meas) + col * (half * e.flank(load))[:, None])
-    sd = _robust_sigma(cal, cal.sigma_mm) / np.sqrt(np.maximum(w, 1e-300))
+def _switch_width(e: Backlash, b: float, load: np.ndarray, off: np.ndarray, weight: np.ndarray) -> float:
+    """Backlash.switch_width of the play e of size b (load units): the widest doubt about the load that picks the
+    flank, N(0, width^2), that the calibration poses allow (95 % profile likelihood), each pose's reading `off` of
+    the joint's offset (weight 1 / variance) b/2 flank(load + doubt) plus its noise. Mass data 15 % off put a few
+    poses near the switch on the far flank, and fresh poses there are off by the whole play (a spray7 twin: 0.6 mm
+    at a std of 0.02 mm)."""
+    half, sd = 0.5 * b, 1.0 / np.sqrt(np.maximum(weight, 1e-300))
 
     def loglik(width: float) -> float:
         if width == 0:
@@ -747,12 +754,15 @@ def _with_switch_doubt(cal: Calibration, meas: Measurements) -> None:
         return
     draws = []
     if any(_identified_play(cal.effects[i]) for i in plays):
-        refold, rng = _refold_plays(meas, cal.sigma_mm, cal), np.random.default_rng(0)  # same data, same answer
+        refold, rng = _refold_plays(meas, cal), np.random.default_rng(0)  # same data, same answer
         draws = [refold(rng.random(meas.n_poses) < 0.632) for _ in range(SWITCH_DRAWS)]
+    ctx = _basis_context(cal, meas)
     effects = list(cal.effects)
-    for i in plays:
-        found = tuple(d[i].load_coef for d in draws if d[i] is not cal.effects[i] and d[i].load_coef)
-        effects[i] = dataclasses.replace(effects[i], switch_width=_switch_width(cal, meas, i), switch_draws=found)
+    for i, (off, wt) in _play_readings(cal, meas, ctx).items():
+        e = cal.effects[i]
+        found = tuple(d[i].load_coef for d in draws if d[i] is not e and d[i].load_coef)
+        width = _switch_width(e, cal.effect_values[i][0], e.load(ctx), off, wt)
+        effects[i] = dataclasses.replace(e, switch_width=width, switch_draws=found)
     cal.effects = tuple(effects)
 
 
@@ -939,9 +949,7 @@ PLAUSIBLE_TRAVEL_MM = 10.0
 def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> None:
     """Marks a finding whose form needs an unphysical size at a calibration pose ("physical": false, and its
     evidence says so): held-out poses confirmed it, so it stays in the model, but its values are not the joint's."""
-    model = cal.model
-    x = cal.x if cal.x_basis is None else cal.x_basis
-    ctx = Context(model, K.Chain(model, x, meas.joints, cal.R0, meas.labels), meas)
+    model, ctx = cal.model, _basis_context(cal, meas)
     for f in findings:
         names = {p["name"] for p in f.get("parameters", [])}
         sizes = []
