@@ -11,6 +11,7 @@ equilibrium) or a joint offset that follows the direction each joint last moved 
 Each is fitted linearly beside every parameter of the model, on the calibration part, and judged held out.
 
     .venv/bin/python -m benchmarks.justin_elastic [--splits 0 1000 1001] [--blind] [--probes]
+    .venv/bin/python -m benchmarks.justin_elastic --kfold 10   # each pose held out once, 90 % calibrate
 """
 from __future__ import annotations
 
@@ -81,15 +82,12 @@ def probes(cal, meas, train: np.ndarray) -> list[tuple[str, float, float]]:
     return out
 
 
-def run(split: int, blind: bool = False, probe: bool = False) -> list[tuple[str, dict, float]]:
-    _, model, meas, groups = load("dlr_agile_justin", SHARED_DATASETS)
-    ids = np.unique(groups)
-    cal, test = split_70_30(len(ids), seed=split)
-    train = meas.subset(np.flatnonzero(np.isin(groups, ids[cal])))
-    held = meas.subset(np.flatnonzero(np.isin(groups, ids[test])))
+def fixed_forms(model, train, held) -> list[tuple[str, dict, float, object]]:
+    """The geometry chosen on held-out folds, then the product's elastic forms in turn, fitted on `train` and
+    evaluated on `held`: (label, evaluation, seconds, calibration) per row."""
     t0 = time.time()
     sel = select_geometry(model, train, loss=None, folds=5)
-    out = [("geometric (chosen on held-out folds)", evaluate(sel.calibration, held), time.time() - t0)]
+    out = [("geometric (chosen on held-out folds)", evaluate(sel.calibration, held), time.time() - t0, sel.calibration)]
     fit = DG._Fitter(model, train, None, 5, sel.free, sel.prior_scale)
     named, _ = candidates(model, train)
     joint = next(e for e in named if type(e) is JointCompliance and len(e.joints) > 1)
@@ -98,12 +96,42 @@ def run(split: int, blind: bool = False, probe: bool = False) -> list[tuple[str,
                           ("+ lateral compliance of every joint (guessed masses)", [joint, lateral])):
         t0 = time.time()
         cur = fit(chosen, sel.calibration.x)
-        out.append((label, evaluate(cur, held), time.time() - t0))
+        out.append((label, evaluate(cur, held), time.time() - t0, cur))
     t0 = time.time()
     notes: list[str] = []
     masses = DG._identify_masses(cur, list(chosen), [], model, train, fit, notes)
     out.append(("+ mass data identified under both" + ("" if notes else " (not kept: held-out folds object)"),
-                evaluate(masses, held), time.time() - t0))
+                evaluate(masses, held), time.time() - t0, masses))
+    return out
+
+
+def kfold(k: int) -> None:
+    """Each recorded pose held out once, by k folds of the 500 (so (k-1)/k of them calibrate): the fixed forms'
+    held-out mean and RMS over all poses, per row, beside the 70/30 splits' figures."""
+    _, model, meas, groups = load("dlr_agile_justin", SHARED_DATASETS)
+    ids = np.random.default_rng(0).permutation(np.unique(groups))
+    dist: dict[str, list[np.ndarray]] = {}
+    for f, test in enumerate(np.array_split(ids, k)):
+        rows = np.isin(groups, test)
+        held = meas.subset(np.flatnonzero(rows))
+        for label, ev, sec, cal in fixed_forms(model, meas.subset(np.flatnonzero(~rows)), held):
+            d = np.linalg.norm(cal.robot.predict(held.joints, held) - held.points, axis=1)
+            dist.setdefault(label, []).append(d)
+            print(f"fold {f + 1}/{k}: {label}: held-out mean {ev['mean_mm']:.2f} mm ({sec:.0f} s)", flush=True)
+    print(f"\n| model ({k}-fold, each pose held out once) | held-out mean (mm) | RMS (mm) |\n|---|---|---|")
+    for label, ds in dist.items():
+        d = np.concatenate(ds)
+        print(f"| {label} | {d.mean():.2f} | {np.sqrt(np.mean(d**2)):.2f} |")
+
+
+def run(split: int, blind: bool = False, probe: bool = False) -> list[tuple[str, dict, float]]:
+    _, model, meas, groups = load("dlr_agile_justin", SHARED_DATASETS)
+    ids = np.unique(groups)
+    cal, test = split_70_30(len(ids), seed=split)
+    train = meas.subset(np.flatnonzero(np.isin(groups, ids[cal])))
+    held = meas.subset(np.flatnonzero(np.isin(groups, ids[test])))
+    rows = fixed_forms(model, train, held)
+    out, masses = [row[:3] for row in rows], rows[-1][3]
     if probe:
         rows = np.isin(groups, ids[cal])
         print(f"split {split}: + mass data identified under both, on its own calibration poses: mean "
@@ -125,7 +153,10 @@ def main() -> None:
     ap.add_argument("--splits", type=int, nargs="+", default=[0, 1000, 1001])
     ap.add_argument("--blind", action="store_true", help="also run the blind diagnosis on each split")
     ap.add_argument("--probes", action="store_true", help="also ask what the fixed forms leave (see the docstring)")
+    ap.add_argument("--kfold", type=int, metavar="K", help="instead: the fixed forms over K folds, each pose held out once")
     args = ap.parse_args()
+    if args.kfold:
+        return kfold(args.kfold)
     rows = {}
     for s in args.splits:
         for label, ev, sec in run(s, args.blind, args.probes):

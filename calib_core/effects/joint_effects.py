@@ -33,42 +33,66 @@ def hardening(u: np.ndarray, r: float) -> np.ndarray:
     return np.cbrt(-q / 2 + disc) + np.cbrt(-q / 2 - disc)
 
 
+def identified_load(ctx: Context, j: int, coef: tuple) -> np.ndarray:
+    """Joint j's load identified from the data, (N,): gravity regressor columns and the payload column weighted by
+    `coef` (see gravity.py), in N*m or N, or in a play's transition units when its softness was fitted."""
+    from .gravity import gravity_regressor, payload_load
+
+    coef = np.asarray(coef, float)
+    return gravity_regressor(ctx.chain, j) @ coef[:-1] + coef[-1] * payload_load(ctx.chain, ctx.meas.payload_kg(), j)
+
+
 @dataclass(frozen=True)
 class JointCompliance(Effect):
     """dq_j = c_j * load_j: each joint (gear, motor, structure) deflects with its gravity and payload load from
     the model's mass data; one joint or several. With `stiffening` r > 0 the spring hardens: the deflection
-    g solves g + r g^3 = load / load_scale (times load_scale), so it grows less and less with the load."""
+    g solves g + r g^3 = load / load_scale (times load_scale), so it grows less and less with the load. With
+    `load_coef` (one joint) the load is a play's identified load (identified_load) and the parameter is the
+    deflection at load_scale, in rad or mm: a spring that looks like the soft play the search found."""
 
     kind = "joint_compliance"
     needs = "mass"
     stiffening: float = 0.0
-    load_scale: float = 1.0  # N*m or N: the largest load in the calibration data
+    load_scale: float = 1.0  # N*m or N (or the identified load's units): the largest load in the calibration data
     masses: tuple = ()  # (n, 4) mass data identified from the data (kg, kg*mm), else the model's (gravity.py)
+    load_coef: tuple = ()
 
     def parameter_names(self, model):
-        return [f"{model.joint_names[j]}.compliance" for j in self.joints]
+        what = "deflection_at_largest_load" if self.load_coef else "compliance"
+        return [f"{model.joint_names[j]}.{what}" for j in self.joints]
 
     def parameter_units(self, model):
+        if self.load_coef:
+            return [_offset_unit(model, j) for j in self.joints]
         return [f"{_offset_unit(model, j)}/{_load_unit(model, j)}" for j in self.joints]
 
     def basis(self, ctx: Context) -> Basis:
         N, n = ctx.meas.joints.shape
         b = np.zeros((N, n, len(self.joints)))
-        load = ctx.loads if not self.masses else loads(ctx.chain, ctx.meas, np.asarray(self.masses, float))
-        for i, j in enumerate(self.joints):
-            b[:, j, i] = hardening(load[:, j] / self.load_scale, self.stiffening) * self.load_scale
         j = self.joints[0]
-        return Basis(b, None, load[:, j], f"gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
+        if self.load_coef:
+            load = np.zeros((N, n))
+            load[:, j] = identified_load(ctx, j, self.load_coef)
+        else:
+            load = ctx.loads if not self.masses else loads(ctx.chain, ctx.meas, np.asarray(self.masses, float))
+        unit = 1.0 if self.load_coef else self.load_scale  # the parameter is a deflection, or a compliance
+        for i, k in enumerate(self.joints):
+            b[:, k, i] = hardening(load[:, k] / self.load_scale, self.stiffening) * unit
+        how = "identified " if self.load_coef else ""
+        return Basis(b, None, load[:, j], f"{how}gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
 
     def label(self, model):
-        return (super().label(model) + (f" stiffening {self.stiffening:g}" if self.stiffening else "")
+        return (super().label(model) + (" identified load" if self.load_coef else "")
+                + (f" stiffening {self.stiffening:g}" if self.stiffening else "")
                 + (" identified masses" if self.masses else ""))
 
     def explain(self, model):
         who = ", ".join(model.joint_names[j] for j in self.joints)
         one = len(self.joints) == 1
+        how = " (its load identified from the data)" if self.load_coef else ""
         if self.stiffening:
-            return f"{who} deflect{'s' if one else ''} under gravity and payload load, as a spring that stiffens with load"
+            return (f"{who} deflect{'s' if one else ''} under gravity and payload load, as a spring that stiffens with "
+                    f"load{how}")
         return f"{who} deflect{'s' if one else ''} in proportion to {'its' if one else 'their'} gravity and payload load"
 
 
@@ -105,12 +129,7 @@ class Backlash(Effect):
         default load_coef)."""
         j = self.joints[0]
         coef = self.load_coef if coef is None else coef
-        if not coef:
-            return ctx.loads[:, j]
-        from .gravity import gravity_regressor, payload_load
-
-        coef = np.asarray(coef, float)
-        return gravity_regressor(ctx.chain, j) @ coef[:-1] + coef[-1] * payload_load(ctx.chain, ctx.meas.payload_kg(), j)
+        return identified_load(ctx, j, coef) if coef else ctx.loads[:, j]
 
     def flank(self, load: np.ndarray) -> np.ndarray:
         """Where in the play the joint sits at this load, -1 .. 1 (times b/2)."""

@@ -95,6 +95,8 @@ def _named(findings, kind, joints) -> dict | None:
 
 
 LOAD_DRIVEN = {"joint_compliance", "link_deflection", "backlash"}
+ANGLE_DRIVEN = {"cyclic_joint_error", "joint_scale"}
+"""Named causes that are a function of their joint's own angle."""
 
 
 def _implicated(findings, kind, joints) -> dict | None:
@@ -170,17 +172,20 @@ def test_cause_without_a_name_is_never_silent(kind, seed):
 def test_a_cable_pulled_by_one_joint_is_traced_to_it(seed):
     """The world's cable pulls on one joint with a tension that grows with another joint's travel beyond its slack:
     off the vocabulary, but the unexplained finding says which joint drives it (the other joints' offsets as
-    harmonics of it), and fitting that probe with the geometry takes most of it off on fresh poses. In development
-    draws at 2-8x the noise: the driver among what the residual follows in 18 of 18 spray7 draws, fresh-pose error
-    0.06-0.38x the geometric fit's."""
+    harmonics of it), or a named form of the driver's angle stands in for it, and the model takes most of it off on
+    fresh poses. In development draws at 2-8x the noise: the driver among what the residual follows in 18 of 18 spray7
+    draws, fresh-pose error 0.06-0.38x the geometric fit's; 2 misses in 54 seeds before harmonics of the driver
+    counted."""
     size = _size(seed, 2.0, 8.0)
     world, info, meas = _world("cable_force", size, seed)
     driven, driver = info["joints"]
     d = diagnose(SPRAY, meas)
     where = f"cable on {driven} pulled by {driver} at {size:.1f}x noise, seed {seed}: {d.explanation}"
     follows = [x for f in d.findings if f["kind"] == "unexplained" for x in f.get("follows", [])]
-    assert follows, where
-    traced = any(x["joints"] == [driver] and "other joints" in x["what"] for x in follows)
+    # or a named form that is a function of the driver's angle takes it to the floor (seed 155959065: two harmonics of
+    # J3 and J4's bending, 1.18x the floor, no `unexplained` left)
+    angle_of = [f for f in d.findings if f["kind"] in ANGLE_DRIVEN and f["joints"] == [driver]]
+    traced = any(x["joints"] == [driver] and "other joints" in x["what"] for x in follows) or angle_of
     assert traced, (follows, where)
     assert _truth_error(world, d.calibration.robot, info) < 0.5 * _truth_error(world, d.geometric.robot, info), where
 
