@@ -423,7 +423,8 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
         # ...also on the load the play found: the model's masses may be off or absent (a spring of 7.8x the noise
         # on J4 was taken for a soft play on its identified load, 1.8x the noise off the truth; seed 1808188314)
         big = float(np.abs(e.load(ctx)).max())
-        out += [JointCompliance(e.joints, stiffening=r, load_scale=big, load_coef=e.load_coef) for r in STIFFENING]
+        out += [JointCompliance(e.joints, stiffening=r, load_scale=big, load_coef=e.load_coef,
+                                fitted_softness=e.fitted_softness) for r in STIFFENING]
     if isinstance(e, JointCompliance) and j in load_pool:
         out.append(load_pool[j])
     if isinstance(e, Backlash):
@@ -509,6 +510,10 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
         if c is not mine:
             chosen[k - 1] = c.effect
             current = fit(chosen, current.x)
+        else:  # it stays: so do the forms _refine could not tell from it
+            seen = {(a["kind"], tuple(a["joints"])) for a in alike}
+            alike += [a for a in findings[k - 1].get("indistinguishable_from", [])
+                      if (a["kind"], tuple(a["joints"])) not in seen]
         findings[k - 1] = _finding(c, model, base, current, floor, alike, meas)
     return current
 
@@ -663,7 +668,8 @@ def _joint_offsets(col: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, n
 
 
 def _identified_play(e: Effect) -> bool:
-    return isinstance(e, Backlash) and bool(e.load_coef)
+    """A play whose switch the search read off the residual, or the spring tried on that play's load."""
+    return isinstance(e, (Backlash, JointCompliance)) and bool(e.load_coef)
 
 
 def _basis_context(cal: Calibration, meas: Measurements) -> Context:
@@ -673,14 +679,15 @@ def _basis_context(cal: Calibration, meas: Measurements) -> Context:
 
 
 def _play_readings(cal: Calibration, meas: Measurements, ctx: Context) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Per gear play in cal (by index): its joint's offset read off each pose with the fitted play put back (the
-    residual along the joint's motion) and the reading's weight (1 / variance, noise and robust weights in)."""
+    """Per gear play in cal (and spring on a play's load, by index): its joint's offset read off each pose with the
+    fitted effect put back (the residual along the joint's motion) and the reading's weight (1 / variance, noise
+    and robust weights in)."""
     residual = meas.points - cal.predict(meas.joints, meas)
     sigma = _robust_sigma(cal, cal.sigma_mm)
     Jq = _joint_columns(cal, meas)
     out = {}
     for i, (e, v) in enumerate(zip(cal.effects, cal.effect_values)):
-        if isinstance(e, Backlash):
+        if isinstance(e, Backlash) or _identified_play(e):
             col = Jq[:, :, e.joints[0]]
             off, w = _joint_offsets(col, residual + col * (v[0] * e.basis(ctx).joint[:, e.joints[0], 0])[:, None])
             out[i] = off, w / sigma**2
@@ -711,7 +718,11 @@ def _refold_plays(meas: Measurements, cal: Calibration) -> Callable[[np.ndarray]
             beta = _switch(Z, off[train], wt[train], np.linalg.lstsq(Z, start[train], rcond=None)[0])
             if e.fitted_softness:
                 beta = _softness(Z, off[train], wt[train], beta)
-            out[i] = feats.play(e.joints[0], beta, e.fitted_softness) or e
+            play = feats.play(e.joints[0], beta, e.fitted_softness)
+            if play is not None and isinstance(e, JointCompliance):  # the spring on the load found again
+                big = float(np.abs(play.load(ctx)).max())
+                play = dataclasses.replace(e, load_coef=play.load_coef, load_scale=big) if big > 0 else None
+            out[i] = play or e
         return tuple(out)
 
     return effects
@@ -766,6 +777,8 @@ def _with_switch_doubt(cal: Calibration, meas: Measurements) -> None:
     effects = list(cal.effects)
     for i, (off, wt) in _play_readings(cal, meas, ctx).items():
         e = cal.effects[i]
+        if i not in plays:
+            continue
         found = tuple(d[i].load_coef for d in draws if d[i] is not e and d[i].load_coef)
         width = _switch_width(e, cal.effect_values[i][0], e.load(ctx), off, wt)
         effects[i] = dataclasses.replace(e, switch_width=width, switch_draws=found)

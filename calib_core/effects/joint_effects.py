@@ -56,6 +56,7 @@ class JointCompliance(Effect):
     load_scale: float = 1.0  # N*m or N (or the identified load's units): the largest load in the calibration data
     masses: tuple = ()  # (n, 4) mass data identified from the data (kg, kg*mm), else the model's (gravity.py)
     load_coef: tuple = ()
+    fitted_softness: bool = False  # load_coef came from a play whose softness was fitted (see Backlash)
 
     def parameter_names(self, model):
         what = "deflection_at_largest_load" if self.load_coef else "compliance"

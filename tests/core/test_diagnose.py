@@ -46,7 +46,10 @@ at the large sizes the part it cannot represent shows, so the truth limit of a r
 (seed 549: 0.99x the noise at 7.8x, 0.13 of the size; the same at 7008116, before this session)."""
 PLAY_TRUTH_LIMIT = 2.0
 """For a gear play the identified switch misplaces a few poses, and each costs the full play: the benchmark
-measures 0.3-2.7x the noise at 1-4x (docs/RESULTS.md, section 3); the geometry alone leaves 3-8x here."""
+measures 0.3-2.7x the noise at 1-4x (docs/RESULTS.md, section 3); the geometry alone leaves 3-8x here. The same
+when a stiffening spring is named as a soft play with the spring among its look-alikes: the calibration poses
+cannot tell them apart, and fresh poses at larger loads can (seed 1808188314: 1.83x the noise at 7.8x, the
+spring on the play's load 1 % better held out)."""
 Z_LIMIT = {"base_tilt": 3.0, "cable_force": 6.0, "rehoming_step": 3.0}
 """Guard on the RMS z of fresh poses' predictions against the truth when structure is left unexplained: the
 de-noised held-out model error is in the prediction std (calib_core.uncertainty). The target is 2 and it is
@@ -142,7 +145,8 @@ def test_hidden_cause_is_found_blind(kind, seed):
         assert all(g.get("physical", True) for g in d.findings), where
     # with the cause in the model, fresh poses are predicted closer to the truth than the tracker measures
     ratio = _truth_error(world, d.calibration, info)
-    limit = PLAY_TRUTH_LIMIT if kind in PLAYS else BEARINGS_TRUTH_LIMIT if kind == "elastic_bearings" else TRUTH_LIMIT
+    limit = (PLAY_TRUTH_LIMIT if kind in PLAYS or f["kind"] == "backlash" else BEARINGS_TRUTH_LIMIT
+             if kind == "elastic_bearings" else TRUTH_LIMIT)
     if kind in ("cantilever", "telescopic_bending"):
         limit = max(limit, BENDING_SHARE * size)
     if kind == "rail_straightness":
@@ -174,8 +178,8 @@ def test_a_cable_pulled_by_one_joint_is_traced_to_it(seed):
     off the vocabulary, but the unexplained finding says which joint drives it (the other joints' offsets as
     harmonics of it), or a named form of the driver's angle stands in for it, and the model takes most of it off on
     fresh poses. In development draws at 2-8x the noise: the driver among what the residual follows in 18 of 18 spray7
-    draws, fresh-pose error 0.06-0.38x the geometric fit's; 2 misses in 54 seeds before harmonics of the driver
-    counted."""
+    draws, fresh-pose error 0.06-0.38x the geometric fit's. Before a form of the driver's angle counted, seeds 500-529
+    and 600-623 missed once, and CI drew the seed above."""
     size = _size(seed, 2.0, 8.0)
     world, info, meas = _world("cable_force", size, seed)
     driven, driver = info["joints"]
@@ -261,10 +265,29 @@ def test_the_chance_of_so_few_runs_is_exact(seed):
     assert runs_probability(n, n, N) == pytest.approx(1.0)
 
 
-def _held_out(distances_mm):
+def _held_out(distances_mm, outliers=()):
     """What holdout_gain reads of a calibration: its held-out distances and the poses it named as outliers."""
     return SimpleNamespace(holdout_residual_mm=np.asarray(distances_mm, float),
-                           solution=SimpleNamespace(outliers=np.zeros(0, int)))
+                           solution=SimpleNamespace(outliers=np.asarray(outliers, int)))
+
+
+def test_a_cause_that_brings_poses_back_from_the_outliers_gains_on_them(seed):
+    """A geometric model that misses a cause concentrated on part of the workspace can flag a sixth of the poses as
+    outliers under the Huber loss; the cause that explains them is confirmed on them (seed 609 of
+    test_two_causes_together_are_both_found found nothing while the gain was left out). Poses both fits flag (bad
+    readings) stay out: a model that only changes its error there gains nothing."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(120, 300))
+    noise = np.abs(rng.normal(0.08, 0.02, n))
+    hit = rng.choice(n, int(rng.integers(n // 10, n // 5)), replace=False)
+    before = noise * rng.uniform(0.95, 1.05, n)
+    before[hit] += rng.uniform(0.5, 1.5, len(hit))  # flagged by the geometric fit
+    assert holdout_gain(_held_out(before, hit), _held_out(noise))[0] < 1e-3, seed
+    bad = before.copy()
+    bad[hit] += rng.uniform(100.0, 1000.0, len(hit))  # readings of something else: both fits flag them
+    other = bad.copy()
+    other[hit] *= rng.uniform(0.5, 0.9, len(hit))
+    assert holdout_gain(_held_out(bad, hit), _held_out(other, hit)) == (1.0, 0.0), seed
 
 
 def test_the_held_out_test_sees_a_broad_gain_a_few_poses_and_nothing(seed):

@@ -105,3 +105,26 @@ def test_a_vertical_axis_carries_no_identified_load(seed):
         no_moment = (along > 1.0 - 1e-12).all() if not model.prismatic[j] else (along < 1e-12).all()
         assert (load_mix_for(chain, j) is None) == no_moment, (model.joint_names[j], along.min(), seed)
         assert (DG._LoadFeatures.of(chain, meas, j) is None) == no_moment, (model.joint_names[j], seed)
+
+
+def test_a_spring_on_a_plays_identified_load_bends_less_and_less_with_it(seed):
+    """The stiffening spring tried beside a play found on an identified load: it deflects with that load's sign,
+    monotonically, ever less per unit of load, and its parameter is the deflection at the largest load (rad)."""
+    from calib_core.effects import Backlash
+    from calib_core.effects.joint_effects import hardening
+
+    meas, _, _, ch = _poses(seed, 60)
+    ctx = Context(TREE, ch, meas)
+    rng = np.random.default_rng((seed, 6))
+    j = int(rng.choice([k for k in MOVING if np.ptp(ctx.loads[:, k]) > 0]))
+    coef = tuple(rng.normal(size=gravity_regressor(ch, j).shape[1] + 1))
+    load = Backlash((j,), transition=1.0, load_coef=coef).load(ctx)
+    r = float(rng.choice(DG.STIFFENING))
+    spring = JointCompliance((j,), stiffening=r, load_scale=float(np.abs(load).max()), load_coef=coef)
+    g = spring.basis(ctx).joint[:, j, 0]
+    order = np.argsort(np.abs(load))
+    assert np.all(np.sign(g) == np.sign(load)), seed
+    assert np.all(np.diff(np.abs(g)[order]) >= -1e-12), seed
+    assert np.all(np.diff((np.abs(g) / np.maximum(np.abs(load), 1e-300))[order][1:]) <= 1e-12), seed
+    assert np.isclose(np.abs(g).max(), hardening(np.array(1.0), r)), seed
+    assert spring.parameter_units(TREE) == ["rad" if not TREE.prismatic[j] else "mm"], seed
