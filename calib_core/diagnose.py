@@ -1428,7 +1428,8 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
 def explain(d: Diagnosis, model: RobotModel) -> str:
     """One paragraph a process engineer can read; it says what the JSON says."""
     g = d.geometric.metrics()
-    head = (f"After the geometric calibration the robot's held-out error is {g['holdout_rms_mm']:.3f} mm RMS "
+    out = f" (the {len(g['outliers'])} outliers left out)" if g["outliers"] else ""
+    head = (f"After the geometric calibration the robot's held-out error is {g['holdout_rms_mm']:.3f} mm RMS{out} "
             f"against a noise floor of {d.noise_floor_mm:.3f} mm (what a perfect model would leave: {d.noise_note}).")
     gaps = d.gaps()
     caveat = (f" This pose set cannot identify {len(gaps)} parameter(s) ({', '.join(gaps[:6])}"

@@ -187,9 +187,13 @@ class Calibration:
                "sigma0_measurement": self.sigma0_measurement if self.sigma0_measurement is not None
                else float(np.sqrt(self.solution.s2)),
                "iterations": self.solution.iterations, "converged": self.solution.converged}
-        if self.holdout_residual_mm is not None:
-            out["holdout_rms_mm"] = _rms(self.holdout_residual_mm)
-            out["holdout_max_mm"] = float(self.holdout_residual_mm.max())
+        if self.holdout_residual_mm is not None:  # over the poses that are not outliers: the robot's error
+            kept = np.delete(self.holdout_residual_mm, self.solution.outliers)
+            kept = kept if kept.size else self.holdout_residual_mm
+            out["holdout_rms_mm"] = _rms(kept)
+            out["holdout_max_mm"] = float(kept.max())
+            if len(self.solution.outliers):
+                out["holdout_rms_with_outliers_mm"] = _rms(self.holdout_residual_mm)
         out["outliers"] = [self.point_ids[i] if self.point_ids else int(i) for i in self.solution.outliers]
         return out
 
