@@ -184,6 +184,8 @@ class Diagnosis:
                 "point": list(self.calibration.point_ids),
                 "geometric_holdout_mm": self.geometric.holdout_residual_mm.tolist(),
                 "final_holdout_mm": self.calibration.holdout_residual_mm.tolist(),
+                "geometric_outlier": (~_inliers(self.geometric)).tolist(),  # left out of the held-out figures
+                "final_outlier": (~_inliers(self.calibration)).tolist(),
             },
         }
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
-HOLDOUT_NOTE = ("held-out: every pose predicted by the model fitted without it (5-fold cross-validation). "
+HOLDOUT_NOTE = ("held-out: every pose predicted by the model fitted without it (5-fold cross-validation), "
+                "the poses the model names as outliers left out. "
                 "ISO 9283 positional accuracy AP = distance between the command position and the barycentre "
                 "of the attained positions; with one measurement per pose the barycentre is that measurement, "
                 "so AP per pose is the held-out distance and the table gives its mean and max over the poses.")
@@ -52,8 +53,10 @@ def std_str(std: Any) -> str:
     return "—" if s is None else f"{s:.2g}"
 
 
-def _stats(values) -> dict | None:
-    vals = [num(v) for v in values or []]
+def _stats(values, outlier=None) -> dict | None:
+    """n, mean, RMS and max of the finite values that are not flagged in `outlier` (the figures' poses)."""
+    out = outlier or [False] * len(values or [])
+    vals = [num(v) for v, o in zip(values or [], out) if not o]
     vals = [v for v in vals if v is not None]
     if not vals:
         return None
@@ -73,14 +76,14 @@ def accuracy(answer: dict) -> dict:
     d = answer.get("diagnosis") or {}
     pp = d.get("per_pose") or {}
     final_fit = {"mean_mm": num(m.get("mean_mm")), "rms_mm": num(m.get("rms_mm")), "max_mm": num(m.get("max_mm"))}
-    fh = _stats(pp.get("final_holdout_mm"))
-    final_ho = {"n": m.get("n_poses"), "mean_mm": fh and fh["mean_mm"], "rms_mm": num(m.get("holdout_rms_mm")),
+    fh = _stats(pp.get("final_holdout_mm"), pp.get("final_outlier"))
+    final_ho = {"n": fh["n"] if fh else m.get("n_poses"), "mean_mm": fh and fh["mean_mm"], "rms_mm": num(m.get("holdout_rms_mm")),
                 "max_mm": num(m.get("holdout_max_mm"))}
     model = list(answer.get("model") or ["geometric"])
     rows = []
     if d.get("geometric") and model != ["geometric"]:
         g = d["geometric"]
-        gh = _stats(pp.get("geometric_holdout_mm"))
+        gh = _stats(pp.get("geometric_holdout_mm"), pp.get("geometric_outlier"))
         rows.append({"model": "geometric", "fit": {"mean_mm": None, "rms_mm": num(g.get("rms_mm")),
                                                    "max_mm": num(g.get("max_mm"))},
                      "holdout": {"n": gh and gh["n"], "mean_mm": gh and gh["mean_mm"],
