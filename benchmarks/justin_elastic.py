@@ -153,7 +153,8 @@ def main() -> None:
     ap.add_argument("--splits", type=int, nargs="+", default=[0, 1000, 1001])
     ap.add_argument("--blind", action="store_true", help="also run the blind diagnosis on each split")
     ap.add_argument("--probes", action="store_true", help="also ask what the fixed forms leave (see the docstring)")
-    ap.add_argument("--kfold", type=int, metavar="K", help="instead: the fixed forms over K folds, each pose held out once")
+    ap.add_argument("--kfold", type=int, metavar="K",
+                    help="instead: the fixed forms over K folds, each pose held out once")
     args = ap.parse_args()
     if args.kfold:
         return kfold(args.kfold)

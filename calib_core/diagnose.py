@@ -417,7 +417,8 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
         return []
     j = e.joints[0]
     out: list[Effect] = []
-    if has_loads(ctx.model, ctx.meas) and isinstance(e, (JointCompliance, Backlash)) and not getattr(e, "stiffening", 0):
+    spring_or_play = isinstance(e, (JointCompliance, Backlash)) and not getattr(e, "stiffening", 0)
+    if spring_or_play and has_loads(ctx.model, ctx.meas):
         # a soft play and a stiffening spring both deflect less and less as the load grows: try both
         big = float(np.abs(ctx.loads[:, j]).max())
         out += [JointCompliance(e.joints, stiffening=r, load_scale=big) for r in STIFFENING]

@@ -72,7 +72,8 @@ def _fold_stats(d: np.ndarray, folds: int, keep: np.ndarray | None = None) -> tu
     """Held-out RMS over the poses `keep` (default all) and the standard error of the per-fold RMS values."""
     keep = np.ones(len(d), bool) if keep is None else keep
     assign = fold_ids(len(d), folds)
-    per = np.array([np.sqrt(np.mean(d[keep & (assign == k)] ** 2)) for k in range(folds) if np.any(keep & (assign == k))])
+    parts = [keep & (assign == k) for k in range(folds)]
+    per = np.array([np.sqrt(np.mean(d[part] ** 2)) for part in parts if part.any()])
     return float(np.sqrt(np.mean(d[keep] ** 2))), float(per.std(ddof=1) / np.sqrt(len(per))) if len(per) > 1 else 0.0
 
 

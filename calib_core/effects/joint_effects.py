@@ -80,7 +80,8 @@ class JointCompliance(Effect):
         for i, k in enumerate(self.joints):
             b[:, k, i] = hardening(load[:, k] / self.load_scale, self.stiffening) * unit
         how = "identified " if self.load_coef else ""
-        return Basis(b, None, load[:, j], f"{how}gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
+        return Basis(b, None, load[:, j],
+                     f"{how}gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
 
     def label(self, model):
         return (super().label(model) + (" identified load" if self.load_coef else "")

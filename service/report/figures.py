@@ -77,8 +77,8 @@ def accuracy(answer: dict) -> dict:
     pp = d.get("per_pose") or {}
     final_fit = {"mean_mm": num(m.get("mean_mm")), "rms_mm": num(m.get("rms_mm")), "max_mm": num(m.get("max_mm"))}
     fh = _stats(pp.get("final_holdout_mm"), pp.get("final_outlier"))
-    final_ho = {"n": fh["n"] if fh else m.get("n_poses"), "mean_mm": fh and fh["mean_mm"], "rms_mm": num(m.get("holdout_rms_mm")),
-                "max_mm": num(m.get("holdout_max_mm"))}
+    final_ho = {"n": fh["n"] if fh else m.get("n_poses"), "mean_mm": fh and fh["mean_mm"],
+                "rms_mm": num(m.get("holdout_rms_mm")), "max_mm": num(m.get("holdout_max_mm"))}
     model = list(answer.get("model") or ["geometric"])
     rows = []
     if d.get("geometric") and model != ["geometric"]:
