@@ -109,7 +109,19 @@ def _implicated(findings, kind, joints) -> dict | None:
     benchmark reports."""
     if kind not in LOAD_DRIVEN:
         return None
-    return next((f for f in findings if f["kind"] in LOAD_DRIVEN and set(joints) <= set(f["joints"])), None)
+    spread = next((f for f in findings if f["kind"] in LOAD_DRIVEN and set(joints) <= set(f["joints"])), None)
+    return spread or _beam_after(findings, kind, joints)
+
+
+def _beam_after(findings, kind, joints) -> dict | None:
+    """A joint's compliance named as the bending of the link it turns (the link ending at the next joint): that
+    link's root carries the same gravity moment, and with positions alone the two differ only by the tilt at the
+    link's end (seed 910: a spring on J4 at 6.2x named as J5's link bending, also before this session)."""
+    if kind != "joint_compliance" or len(joints) != 1:
+        return None
+    nxt = SPRAY.joint_names.index(joints[0]) + 1 if joints[0] in SPRAY.joint_names else None
+    after = SPRAY.joint_names[nxt] if nxt is not None and nxt < SPRAY.n_joints else None
+    return next((f for f in findings if f["kind"] == "link_deflection" and f["joints"] == [after]), None)
 
 
 def _truth_error(world, robot, info=None, n=100) -> float:
