@@ -184,8 +184,8 @@ class Diagnosis:
                 "point": list(self.calibration.point_ids),
                 "geometric_holdout_mm": self.geometric.holdout_residual_mm.tolist(),
                 "final_holdout_mm": self.calibration.holdout_residual_mm.tolist(),
-                "geometric_outlier": (~_inliers(self.geometric)).tolist(),  # left out of the held-out figures
-                "final_outlier": (~_inliers(self.calibration)).tolist(),
+                "geometric_outlier": (~self.geometric.inliers()).tolist(),  # left out of the held-out figures
+                "final_outlier": (~self.calibration.inliers()).tolist(),
             },
         }
 
@@ -216,16 +216,9 @@ def _robust_sigma(cal: Calibration, sigma: np.ndarray) -> np.ndarray:
     return sigma / np.sqrt(np.maximum(cal.solution.weights, 1e-6))
 
 
-def _inliers(cal: Calibration) -> np.ndarray:
-    """Poses the fit did not name as outliers (held-out statistics leave the outliers out)."""
-    keep = np.ones(len(cal.holdout_residual_mm), bool)
-    keep[cal.solution.outliers] = False
-    return keep
-
-
 def holdout_ms(cal: Calibration) -> float:
     """Mean square held-out distance (mm^2) over the poses that are not outliers."""
-    return float(np.mean(cal.holdout_residual_mm[_inliers(cal)] ** 2))
+    return float(np.mean(cal.holdout_residual_mm[cal.inliers()] ** 2))
 
 
 def model_error_mm(cal: Calibration, floor: float) -> float:
@@ -350,7 +343,7 @@ def holdout_gain(before: Calibration, after: Calibration) -> tuple[float, float]
     model missed by 15 mm swells the t-test's variance: the iiwa's upright pose). A pose counts unless both fits
     name it an outlier: one the cause brings back from the outliers is where the cause shows (a bent link and a
     scale error at 5x the noise had a sixth of the poses flagged by the geometric fit, and the gain on them hidden)."""
-    keep = _inliers(before) | _inliers(after)
+    keep = before.inliers() | after.inliers()
     d = before.holdout_residual_mm[keep] ** 2 - after.holdout_residual_mm[keep] ** 2
     drop = float(d.mean())
     sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
@@ -439,6 +432,12 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
     return out
 
 
+def _merge_alike(alike: list[dict], more: list[dict]) -> list[dict]:
+    """Look-alikes `alike` and those of `more` naming another cause (kind and joints)."""
+    seen = {(a["kind"], tuple(a["joints"])) for a in alike}
+    return alike + [a for a in more if (a["kind"], tuple(a["joints"])) not in seen]
+
+
 def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     """Swap the accepted cause for a richer form of it when held-out poses say so: among the forms that are
     significantly better than it (paired test), the best on held-out poses; the other forms within 2 % of it,
@@ -514,9 +513,7 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
             chosen[k - 1] = c.effect
             current = fit(chosen, current.x)
         else:  # it stays: so do the forms _refine could not tell from it
-            seen = {(a["kind"], tuple(a["joints"])) for a in alike}
-            alike += [a for a in findings[k - 1].get("indistinguishable_from", [])
-                      if (a["kind"], tuple(a["joints"])) not in seen]
+            alike = _merge_alike(alike, findings[k - 1].get("indistinguishable_from", []))
         findings[k - 1] = _finding(c, model, base, current, floor, alike, meas)
     return current
 
@@ -777,11 +774,9 @@ def _with_switch_doubt(cal: Calibration, meas: Measurements) -> None:
         refold, rng = _refold_plays(meas, cal), np.random.default_rng(0)  # same data, same answer
         draws = [refold(rng.random(meas.n_poses) < 0.632) for _ in range(SWITCH_DRAWS)]
     ctx = _basis_context(cal, meas)
-    effects = list(cal.effects)
-    for i, (off, wt) in _play_readings(cal, meas, ctx).items():
-        e = cal.effects[i]
-        if i not in plays:
-            continue
+    effects, readings = list(cal.effects), _play_readings(cal, meas, ctx)
+    for i in plays:
+        e, (off, wt) = cal.effects[i], readings[i]
         found = tuple(d[i].load_coef for d in draws if d[i] is not e and d[i].load_coef)
         width = _switch_width(e, cal.effect_values[i][0], e.load(ctx), off, wt)
         effects[i] = dataclasses.replace(e, switch_width=width, switch_draws=found)
@@ -1017,7 +1012,7 @@ def _holdout_inflation(cal: Calibration, n_poses: int) -> float:
 
 def _excess(cal: Calibration, floor: float) -> float:
     """p-value that the held-out residual is no larger than the noise floor (chi-square on 3N)."""
-    h = cal.holdout_residual_mm[_inliers(cal)]
+    h = cal.holdout_residual_mm[cal.inliers()]
     N = len(h)
     T = float((h**2).sum() / (floor**2 / 3.0) / _holdout_inflation(cal, N))
     return float(stats.chi2.sf(T, 3 * N))
@@ -1144,8 +1139,7 @@ class _Search:
                 continue
             c, trial, alike = _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, self.chosen, x_ref)
             c, trial, forms = _refine(c, trial, self.chosen, self.load_pool, play_pool, model, fit, x_ref)
-            seen = {(a["kind"], tuple(a["joints"])) for a in alike}
-            alike += [f for f in forms if (f["kind"], tuple(f["joints"])) not in seen]
+            alike = _merge_alike(alike, forms)
             if isinstance(c.effect, SessionStep):
                 c, trial = _refine_step(c, trial, self.chosen, model, meas, fit, x_ref)
             elif isinstance(c.effect, LoadCompliance) and len(c.effect.joints) > 1 and self._sparser(c, trial):
@@ -1292,7 +1286,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     # (a tilted base taken up by the rail's straightness: 0.077 mm held out against a 0.063 mm floor, fresh poses
     # off by twice their std); with structure left, over every held-out pose, since the poses a robust loss set
     # aside are then mostly that structure
-    h = current.holdout_residual_mm if structure_left else current.holdout_residual_mm[_inliers(current)]
+    h = current.holdout_residual_mm if structure_left else current.holdout_residual_mm[current.inliers()]
     ms = float(np.mean(h**2)) / _holdout_inflation(current, len(h))  # the parameters' own error is in cov already
     current.unmodelled_mm = float(np.sqrt(max(ms - floor**2, 0.0) / 3.0))
     if loss == "huber" and first is not None:

@@ -178,6 +178,12 @@ class Calibration:
         b = self.x[K.layout(self.model, self.x).base(setup)]
         return K.base_rotation(b, self.R0 if self.R0.ndim == 2 else self.R0[setup]), b[:3].copy()
 
+    def inliers(self) -> np.ndarray:
+        """(N,) bool: the poses the fit did not name as outliers (held-out figures leave the outliers out)."""
+        keep = np.ones(len(self.solution.residual), bool)
+        keep[self.solution.outliers] = False
+        return keep
+
     def metrics(self) -> dict:
         d = np.linalg.norm(self.solution.residual, axis=1)
         out = {"n_poses": int(len(d)), "n_parameters": int(len(self.solution.x)),
@@ -188,7 +194,7 @@ class Calibration:
                else float(np.sqrt(self.solution.s2)),
                "iterations": self.solution.iterations, "converged": self.solution.converged}
         if self.holdout_residual_mm is not None:  # over the poses that are not outliers: the robot's error
-            kept = np.delete(self.holdout_residual_mm, self.solution.outliers)
+            kept = self.holdout_residual_mm[self.inliers()]
             kept = kept if kept.size else self.holdout_residual_mm
             out["holdout_rms_mm"] = _rms(kept)
             out["holdout_max_mm"] = float(kept.max())
