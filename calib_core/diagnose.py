@@ -1010,6 +1010,17 @@ def _holdout_inflation(cal: Calibration, n_poses: int) -> float:
     return 1.0 + p / max(n_poses - p / 3.0, 1.0)
 
 
+def _unmodelled_mm(cal: Calibration, floor: float, structure_left: bool) -> float:
+    """Per-axis std (mm) of the held-out error beyond the floor, which predictions carry in their std: its
+    unbiased estimate whenever positive. Adding it only when significant left the std too small where a cause was
+    explained all but a little (a tilted base taken up by the rail's straightness: 0.077 mm held out against a
+    0.063 mm floor, fresh poses off by twice their std). With structure left, over every held-out pose, since the
+    poses a robust loss set aside are then mostly that structure."""
+    h = cal.holdout_residual_mm if structure_left else cal.holdout_residual_mm[cal.inliers()]
+    ms = float(np.mean(h**2)) / _holdout_inflation(cal, len(h))  # the parameters' own error is in cov already
+    return float(np.sqrt(max(ms - floor**2, 0.0) / 3.0))
+
+
 def _excess(cal: Calibration, floor: float) -> float:
     """p-value that the held-out residual is no larger than the noise floor (chi-square on 3N)."""
     h = cal.holdout_residual_mm[cal.inliers()]
@@ -1281,14 +1292,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         structure_left = _excess(current, floor) < alpha  # current or floor has changed
     _with_switch_doubt(current, meas)
     _judge_sizes(current, findings, meas)
-    # predictions carry in their std the held-out error beyond the floor, its unbiased estimate whenever positive:
-    # adding it only when significant left the std too small where a cause was explained all but a little
-    # (a tilted base taken up by the rail's straightness: 0.077 mm held out against a 0.063 mm floor, fresh poses
-    # off by twice their std); with structure left, over every held-out pose, since the poses a robust loss set
-    # aside are then mostly that structure
-    h = current.holdout_residual_mm if structure_left else current.holdout_residual_mm[current.inliers()]
-    ms = float(np.mean(h**2)) / _holdout_inflation(current, len(h))  # the parameters' own error is in cov already
-    current.unmodelled_mm = float(np.sqrt(max(ms - floor**2, 0.0) / 3.0))
+    current.unmodelled_mm = _unmodelled_mm(current, floor, structure_left)
     if loss == "huber" and first is not None:
         notes.insert(0, _outlier_note(meas, first.solution.outliers, current.solution.outliers))
     nominal = selection.calibrations.get("registration") \
