@@ -13,6 +13,7 @@ the floor, the answer says what it follows (time order, a joint, the load, a wor
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Callable
@@ -138,6 +139,7 @@ class Diagnosis:
     loss: str | None = None
     selection: dict = field(default_factory=dict)  # how the geometric model's size was chosen (held out)
     noise_model: str = ""  # which noise model weighted the fit: the CSV's sigma or an instrument preset
+    untested: str | None = None  # what the search left untested when its time budget ran out (None: it finished)
 
     def model_error_mm(self, cal: Calibration) -> float:
         """De-noised model error: the root of held-out mean square distance minus the floor's (mm)."""
@@ -151,6 +153,10 @@ class Diagnosis:
 
     def verdict(self) -> str:
         """The diagnosis in a few words, for a headline: the same judgement as the explanation and the JSON."""
+        if self.untested:
+            n = sum(f["kind"] != "unexplained" for f in self.findings)
+            return (f"search stopped at its time budget: {n or 'no'} cause(s) confirmed so far, not a complete "
+                    f"answer" + ("; structure left" if len(self.findings) > n else ""))
         if self.findings:
             left = any(f["kind"] == "unexplained" for f in self.findings)
             return "causes found" + ("; structure left that no named cause explains" if left else "")
@@ -169,6 +175,7 @@ class Diagnosis:
             "noise_floor_basis": self.noise_note,
             "noise_floor_source": self.floor_basis,
             "noise_model": self.noise_model,
+            "search_complete": self.untested is None,
             "nominal": {k: self.nominal.metrics()[k] for k in ("rms_mm", "max_mm", "holdout_rms_mm", "holdout_max_mm")},
             "geometric": {"rms_mm": g["rms_mm"], "holdout_rms_mm": g["holdout_rms_mm"], "max_mm": g["max_mm"],
                           "holdout_max_mm": g["holdout_max_mm"], "model_error_mm": self.model_error_mm(self.geometric)},
@@ -784,11 +791,13 @@ def _with_switch_doubt(cal: Calibration, meas: Measurements) -> None:
 
 
 def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray,
-                         joints: list[int], fit: "_Fitter") -> list[Backlash]:
+                         joints: list[int], fit: "_Fitter",
+                         late: Callable[[], bool] = lambda: False) -> list[Backlash]:
     """Backlash whose switch follows the load identified from the data: per joint, a linear classifier of the
     sign of the residual along that joint's motion on the gravity regressor (started from the model's
     statics where there are masses). Its search is paid for in the F-test (`search_dof`), and each fold of the
-    cross-validation finds the switch again on its own training poses (_refold_plays)."""
+    cross-validation finds the switch again on its own training poses (_refold_plays). Stops with the plays found
+    so far once `late()` (each costs a few full fits)."""
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
@@ -801,6 +810,8 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
         feats = _LoadFeatures.of(ref, meas, j)
         if feats is None:
             continue
+        if late():
+            break
         col = Jq[:, :, j]
         e, w = _joint_offsets(col, residual)
         sharp = feats.beta(nominal[:, j] if nominal is not None else e)
@@ -1092,20 +1103,31 @@ class _Search:
     chosen: list[Effect] = field(default_factory=list)
     findings: list[dict] = field(default_factory=list)
     rejected: list[dict] = field(default_factory=list)
+    deadline: float | None = None  # time.monotonic() after which no further model is fitted (the job's time budget)
+    untested: str | None = None  # what the deadline left untested, once it has passed
+
+    def late(self, what: str) -> bool:
+        """True once the deadline has passed; the first call after it records `what` was left untested."""
+        if self.deadline is None or time.monotonic() < self.deadline:
+            return False
+        self.untested = self.untested or what
+        return True
 
     def run(self, report: Callable[[float, str], None]) -> bool:
         """Add the best candidate held-out poses confirm, round after round, until none is or MAX_FINDINGS are
         in the model; True if any was added."""
         added = False
-        while len(self.chosen) < MAX_FINDINGS:
-            report(0.1 + 0.6 * len(self.chosen) / MAX_FINDINGS, f"testing {len(self.pool)} candidate causes")
-            if not self._round():
+        while len(self.chosen) < MAX_FINDINGS and not self.late("the next round of candidates"):
+            at, head = 0.1 + 0.6 * len(self.chosen) / MAX_FINDINGS, f"testing {len(self.pool)} candidate causes"
+            report(at, head)
+            if not self._round(lambda step: report(at, f"{head}: {step}")):
                 break
             added = True
         return added
 
-    def _round(self) -> bool:
-        """One round: screen every candidate not in the model, accept the first (by BIC) held-out poses confirm."""
+    def _round(self, say: Callable[[str], None] = lambda step: None) -> bool:
+        """One round: screen every candidate not in the model, accept the first (by BIC) held-out poses confirm.
+        `say` hears each step that fits models (minutes each on thousands of poses)."""
         model, meas, sigma, alpha, fit, x_ref = self.model, self.meas, self.sigma, self.alpha, self.fit, self.x_ref
         taken = {_cause(e) for e in self.chosen}
         pool = [e for e in self.pool if _cause(e) not in taken]
@@ -1116,8 +1138,11 @@ class _Search:
                   and c.effect.joints[0] in self.load_pool
                   and isinstance(c.effect, (JointCompliance, LoadCompliance, Backlash))
                   and c.log_p <= thresholds[id(c.effect)]}
-        plays = _identified_backlash(self.current, meas, sigma, x_ref,
-                                     sorted(j for j in active if ("backlash", (j,)) not in taken), fit)
+        play_joints = sorted(j for j in active if ("backlash", (j,)) not in taken)
+        if play_joints:
+            say(f"finding where a play would switch on {', '.join(model.joint_names[j] for j in play_joints)}")
+        plays = _identified_backlash(self.current, meas, sigma, x_ref, play_joints, fit,
+                                     lambda: self.late("where a play would switch on the joints whose load shows"))
         play_pool: dict[int, list[Backlash]] = {}
         for b in plays:
             play_pool.setdefault(b.joints[0], []).append(b)
@@ -1125,9 +1150,12 @@ class _Search:
             pool += plays
             thresholds = _thresholds(pool, alpha)
             ranked = sorted(ranked + screen(self.current, meas, sigma, plays, x_ref, alpha)[0], key=lambda c: c.bic)
-        for c in ranked:
+        for k, c in enumerate(ranked):
             if c.log_p > thresholds[id(c.effect)]:
                 continue
+            if self.late(f"{sum(r.log_p <= thresholds[id(r.effect)] for r in ranked[k:])} candidate(s) significant "
+                         f"in the fit, not yet tested on held-out poses"):
+                return False
             who = _who(c.effect, model)
             broad = isinstance(c.effect, SessionStep) or len(c.effect.joints) > 1  # spread over the arm already
             if c.beyond_chance < NAMED_SHARE * field_share and not broad:
@@ -1135,6 +1163,7 @@ class _Search:
                                                     f"chance where a smooth field explains {100 * field_share:.0f} %: "
                                                     f"part of a broader structure"})
                 continue
+            say(f"{c.effect.label(model)} on held-out poses")
             try:
                 trial = fit(self.chosen + [c.effect], x_ref)
             except ValueError as exc:
@@ -1178,6 +1207,7 @@ class _Search:
         for _ in range(MAX_SPARSE):
             if not sub._round():
                 break
+        self.untested = self.untested or sub.untested
         new = sub.chosen[len(self.chosen):]
         if not new or sum(len(e.parameter_names(self.model)) for e in new) >= n_spread:
             return False
@@ -1196,6 +1226,8 @@ class _Search:
     def revisit(self, report: Callable[[float, str], None]) -> None:
         """Test each finding again with the others in the model (_revisit), until nothing changes (3 passes)."""
         for _ in range(3 if len(self.chosen) > 1 else 0):
+            if self.late("each finding tested again with the others in the model"):
+                break
             report(0.75, "revisiting each finding with the others in the model")
             before = list(self.chosen)
             self.current = _revisit(self.findings, self.chosen, self.current, self.pool, self.model, self.meas,
@@ -1209,7 +1241,7 @@ class _Search:
         the refit's bases (loads, a play's switch) follow the final geometry, which can undo a found play (a soft
         play's switch moved: 0.176 -> 0.267 mm held out). Keeping the refit only when held-out poses did not find
         it worse cost Agile Justin 3.33 -> 3.84 mm on split 0 (the masses are identified from it), so it stays."""
-        if not any(_mass_driven(e) for e in self.chosen):
+        if not any(_mass_driven(e) for e in self.chosen) or self.late("the mass data under the compliances found"):
             return False
         self.current = self.fit(self.current.effects, self.current.x)
         report(0.8, "identifying the mass data under the compliances found")
@@ -1221,9 +1253,13 @@ class _Search:
 
 def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, repeatability_mm: float | None = None,
              loss: str | None = "auto", folds: int = 5, unexplained: bool = True,
-             progress: Callable[[float, str], None] | None = None) -> Diagnosis:
+             progress: Callable[[float, str], None] | None = None, deadline: float | None = None) -> Diagnosis:
     """Geometric fit, then the greedy search for causes; returns the extended calibration and the findings.
     When mass data are identified under the compliances found, the search resumes on them once.
+
+    deadline: a time.monotonic() value after which the search fits no further model and the answer is finished
+    with what it has confirmed so far (`Diagnosis.untested` says what was left; thousands of poses can take longer
+    than a job may run).
 
     loss 'auto' fits with the Huber loss when a first robust fit names outliers (the final model's are listed), else
     with plain least squares; poses flagged in runs of consecutive measurements, none absurdly far off, are
@@ -1254,7 +1290,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     moving = [j for j in range(model.n_joints) if np.ptp(meas.joints[:, j]) > 1e-3]
     # a step is a model extension only where the data say when each pose was measured; row order is a guess
     steps = step_candidates(meas, moving) if meas.timestamp is not None else []
-    search = _Search(model, meas, sigma, alpha, fit, floor, named + steps, load_pool, geo, geo.x)
+    search = _Search(model, meas, sigma, alpha, fit, floor, named + steps, load_pool, geo, geo.x, deadline=deadline)
     search.run(report)
     search.revisit(report)
     if search.chosen and search.identify_masses(notes, report) and search.run(report):
@@ -1272,9 +1308,9 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         held_out_rms = np.sqrt(holdout_ms(current))
         if follows or basis != "assumed" or held_out_rms / floor > NOISE_LIKE:
             trial = None
-            fitted = [f for f in [fit_residual_field(fit, current, chosen, x_ref), _drive_field(fit, chosen, x_ref,
-                                                                                                    follows)] if f]
-            for t, rf in sorted(fitted, key=lambda f: f[0].metrics()["holdout_rms_mm"]):
+            fitted = [] if search.late("a smooth correction of what is left") else [
+                fit_residual_field(fit, current, chosen, x_ref), _drive_field(fit, chosen, x_ref, follows)]
+            for t, rf in sorted([f for f in fitted if f], key=lambda f: f[0].metrics()["holdout_rms_mm"]):
                 if _better(current, t, HOLDOUT_ALPHA):
                     trial = (t, rf)
                     break
@@ -1299,7 +1335,11 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
     d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,
                   floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss,
-                  selection=selection.to_dict(), noise_model=meas.noise_source())
+                  selection=selection.to_dict(), noise_model=meas.noise_source(), untested=search.untested)
+    if search.untested:
+        notes.insert(0, f"the search for causes stopped at its time budget; left untested: {search.untested}. What "
+                        f"is named was confirmed on held-out poses, but causes not reached were never tested: this "
+                        f"is not a complete answer (fewer poses, or a longer time budget, let it finish)")
     d.explanation = explain(d, model)
     report(1.0, "diagnosis done")
     return d
@@ -1437,6 +1477,8 @@ def explain(d: Diagnosis, model: RobotModel) -> str:
               f"{', ...' if len(gaps) > 6 else ''}): the model is valid only near the measured poses."
               if gaps else "")
     tail = (" " + " ".join(n if n.endswith(".") else n + "." for n in d.notes)) if d.notes else ""
+    if not d.findings and d.untested:
+        return head + " No cause was confirmed before the search stopped." + caveat + tail
     if not d.findings:
         if d.floor_basis == "residual":
             return head + " No cause was found and the residual follows nothing." + caveat + tail

@@ -185,15 +185,20 @@ class Calibration:
         return keep
 
     def metrics(self) -> dict:
-        d = np.linalg.norm(self.solution.residual, axis=1)
-        out = {"n_poses": int(len(d)), "n_parameters": int(len(self.solution.x)),
+        """Fit and held-out figures (mm) over the poses that are not outliers, the robot's error, not the bad
+        readings'; with outliers named, the RMS and max over every pose beside them (`*_with_outliers_mm`)."""
+        every = np.linalg.norm(self.solution.residual, axis=1)
+        d = every[self.inliers()] if len(every) > len(self.solution.outliers) else every
+        out = {"n_poses": int(len(every)), "n_parameters": int(len(self.solution.x)),
                "n_geometric_parameters": int(len(self.free)), "rms_mm": _rms(d),
                "mean_mm": float(d.mean()), "max_mm": float(d.max()), "sigma0": float(np.sqrt(self.solution.s2)),
                "model_error_mm": self.model_error_mm,
                "sigma0_measurement": self.sigma0_measurement if self.sigma0_measurement is not None
                else float(np.sqrt(self.solution.s2)),
                "iterations": self.solution.iterations, "converged": self.solution.converged}
-        if self.holdout_residual_mm is not None:  # over the poses that are not outliers: the robot's error
+        if len(self.solution.outliers):
+            out["rms_with_outliers_mm"], out["max_with_outliers_mm"] = _rms(every), float(every.max())
+        if self.holdout_residual_mm is not None:
             kept = self.holdout_residual_mm[self.inliers()]
             kept = kept if kept.size else self.holdout_residual_mm
             out["holdout_rms_mm"] = _rms(kept)

@@ -21,9 +21,10 @@ N_FEATURES = 96
 PRIOR_STD_MM = 0.5
 
 
-def _scaled(model, q):
-    lo, hi = model.limits[:, 0], model.limits[:, 1]
-    return (q - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
+def _travel(model, q, j: int) -> np.ndarray:
+    """Prismatic joint j's position over its travel, -1..1 between its limits."""
+    lo, hi = model.limits[j]
+    return (q[:, j] - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,7 @@ class ResidualField(Effect):
         cols, z = [], []
         for j in model.actuated:  # coupled rows follow them, fixed rows never move
             if model.prismatic[j]:
-                s = _scaled(model, q)[:, j]
+                s = _travel(model, q, j)
                 cols += [s, 1.5 * s**2 - 0.5, 2.5 * s**3 - 1.5 * s]
                 z.append(s)
             else:

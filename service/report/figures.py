@@ -15,7 +15,8 @@ HOLDOUT_NOTE = ("held-out: every pose predicted by the model fitted without it (
                 "ISO 9283 positional accuracy AP = distance between the command position and the barycentre "
                 "of the attained positions; with one measurement per pose the barycentre is that measurement, "
                 "so AP per pose is the held-out distance and the table gives its mean and max over the poses.")
-FIT_NOTE = "fit: distance of every calibration pose to the model fitted on all of them (in-sample)."
+FIT_NOTE = ("fit: distance of each calibration pose to the model fitted on all of them (in-sample), the outliers "
+            "left out too.")
 
 
 def num(v: Any) -> float | None:

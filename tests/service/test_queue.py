@@ -16,6 +16,7 @@ from service.jobs.models import Job
 from service.jobs.service import enqueue
 from service.measurements.service import create_measurement_set
 from service.queue import store
+from service.queue.runner import SEARCH_SHARE
 from service.robots.service import create_robot
 
 from .conftest import Proc, Server, base_env, wait_for
@@ -381,6 +382,31 @@ def test_time_limit_holds_across_graceful_restarts(model_doc, csv_text, tmp_path
     assert ran_before >= 3  # the released job kept its run time
     assert took < limit - 1, took  # it had ~3 s left, not a fresh 6 s
     db.dispose()
+
+
+def test_a_diagnosis_out_of_time_answers_and_says_so(model_doc, csv_text, tmp_path):
+    """An `auto` job searches for causes during SEARCH_SHARE of its time limit, then answers with what held-out poses
+    confirmed and says that it is not complete (thousands of poses used to be killed at the limit after ten
+    minutes of work, answer lost). The test delay eats the search's share here: the job still succeeds, its
+    diagnosis says where it stopped, and the same data without the delay give a complete answer."""
+    limit = 20
+    env = dict(CALIB_TEST_POISON=1, CALIB_JOB_TIMEOUT_S=limit, CALIB_WORKER_CONCURRENCY=1)
+    s = Server(f"sqlite:///{tmp_path / 'calib.db'}", tmp_path / "server.log", **env)
+    try:
+        rid = _ok(s.client.post("/robots", json=model_doc))["id"]
+        late = f"slow={SEARCH_SHARE * limit + 0.5:g}"
+        sets = [_ok(s.client.post(f"/robots/{rid}/measurements", files={"file": (f"{m}.csv", text)}))["id"]
+                for m, text in ((late, marked(csv_text, late)), ("good", csv_text))]
+        ids = [submit(s, ms, "auto") for ms in sets]
+        js = wait_for(lambda: finished(s, ids), 3 * limit + 60, "both auto jobs", interval=0.2)
+        assert [j["status"] for j in js] == ["succeeded", "succeeded"], js
+        cut, full = (_ok(s.client.get(f"/calibrations/{j['calibration_id']}"))["diagnosis"] for j in js)
+    finally:
+        s.stop()
+    assert cut["search_complete"] is False and cut["verdict"].startswith("search stopped at its time budget"), cut
+    assert "not a complete answer" in cut["explanation"] and cut["notes"][0].startswith("the search for causes"), cut
+    assert js[0]["run_seconds"] < limit, js[0]
+    assert full["search_complete"] is True and "time budget" not in full["verdict"] + full["explanation"], full
 
 
 def test_first_job_after_start_is_as_fast_as_a_warm_one(model_doc, csv_text, tmp_path):
