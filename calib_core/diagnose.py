@@ -796,8 +796,8 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
     """Backlash whose switch follows the load identified from the data: per joint, a linear classifier of the
     sign of the residual along that joint's motion on the gravity regressor (started from the model's
     statics where there are masses). Its search is paid for in the F-test (`search_dof`), and each fold of the
-    cross-validation finds the switch again on its own training poses (_refold_plays). Stops with the plays found
-    so far once `late()` (each costs a few full fits)."""
+    cross-validation finds the switch again on its own training poses (_refold_plays). Once `late()`, returns the
+    plays found so far (each costs a few full fits: a minute on thousands of poses)."""
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
@@ -810,8 +810,6 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
         feats = _LoadFeatures.of(ref, meas, j)
         if feats is None:
             continue
-        if late():
-            break
         col = Jq[:, :, j]
         e, w = _joint_offsets(col, residual)
         sharp = feats.beta(nominal[:, j] if nominal is not None else e)
@@ -827,6 +825,8 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
                 if soft and np.abs(feats.F @ np.asarray(play.load_coef)).max() < SATURATES:
                     play = None  # it never reaches the flanks of its play: that is a spring, not a play
                     break
+                if late():  # the joint in progress is left out
+                    return out
                 try:  # fit it, then find the switch again on the residual with the play put back (partial residual)
                     fitted = fit(tuple(cal.effects) + (play,), x_ref, folds=0)
                 except ValueError:

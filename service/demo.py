@@ -226,7 +226,7 @@ class Api:
         its CSV row says (_pose_fields; one request per setup)."""
         out = np.empty((meas.n_poses, 3))
         for rows in _groups(meas):
-            body = {"joints": (meas.joints[rows] / model.joint_scale()).tolist(), **_pose_fields(model, meas, rows)}
+            body = {"joints": _commands(model, meas.joints[rows]).tolist(), **_pose_fields(model, meas, rows)}
             if meas.payload is not None:
                 body["payload"] = meas.payload[rows].tolist()
             if meas.temperature is not None:
@@ -236,6 +236,12 @@ class Api:
             r = self.call("POST", f"/calibrations/{cal_id}/predict", json=body).json()
             out[rows] = np.asarray(r["positions"], float) * LENGTH_TO_MM[model.length_unit]
         return out
+
+
+def _commands(model: RobotModel, q: np.ndarray) -> np.ndarray:
+    """The actuated joints' values (N, n_act) in the model's units from row values (N, n) in internal units: what
+    predict and compensate take (coupled rows follow, fixed rows do not move)."""
+    return q[:, model.actuated] / model.joint_scale()[model.actuated]
 
 
 def _groups(meas: Measurements, by_payload: bool = False) -> list[np.ndarray]:
@@ -734,7 +740,7 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
     val = camp.val
     joints, resid = np.empty_like(seeds), np.full(len(seeds), np.nan)
     for rows in _groups(val, by_payload=True):
-        body = {"targets": (targets_mm[rows] / ls).tolist(), "seed_joints": (seeds[rows] / js).tolist(),
+        body = {"targets": (targets_mm[rows] / ls).tolist(), "seed_joints": _commands(model, seeds[rows]).tolist(),
                 **_pose_fields(model, val, rows)}
         if val.payload is not None:
             body["payload"] = float(val.payload[rows[0]])
@@ -743,7 +749,7 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
             say(f"compensation: the service answered {r.status_code}: {r.text[:300]}", 3)
             return
         out = r.json()
-        joints[rows] = np.asarray(out["joints"], float) * js
+        joints[rows] = model.expand_joints(np.asarray(out["joints"], float) * js[model.actuated])
         resid[rows] = [np.nan if v is None else v for v in out.get("residual_mm", [])]
     n_ok = int(np.sum(resid < 0.01)) if len(resid) else 0
     if camp.twin is None:

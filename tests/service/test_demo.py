@@ -256,6 +256,45 @@ def test_demo_validates_each_pose_at_its_own_target(tmp_path):
     assert got["rms_mm"] < 1.2 * before["rms_mm"], (got, before)
 
 
+def test_demo_validates_and_compensates_a_tree_with_coupled_and_fixed_rows(tmp_path, capsys):
+    """predict and compensate take the actuated joints only: the demo sent every row of the model (coupled and fixed
+    included), and on the Hilti set from its URDF (16 rows, 7 actuated) it failed with a 422 after the calibration.
+    A torso with a coupled joint, fixed plates and two arms: the demo's validation agrees with the calibration
+    predicted in-process, and its compensation reaches every held-out target."""
+    from calib_core.io import write_measurements
+    from calib_core.model import parse_model
+    from calib_core.twin import Twin
+
+    from tests.core.test_tree import torso_two_arms
+
+    doc = torso_two_arms()
+    model = parse_model(doc)
+    rng = np.random.default_rng(int(os.environ.get("CALIB_TEST_SEED", "0")))
+    (tmp_path / "model.json").write_text(json.dumps(doc))
+    meas = Twin(model, seed=int(rng.integers(1 << 30))).measure(n=120)
+    (tmp_path / "data.csv").write_text(write_measurements(meas, model))
+    camp = demo.from_files(tmp_path / "model.json", tmp_path / "data.csv", int(rng.integers(1000)))
+    assert len(model.actuated) < model.n_joints
+    server = Server(f"sqlite:///{tmp_path / 'calib.db'}", tmp_path / "server.log")
+    api = demo.Api(server.url, None)
+    try:
+        robot = api.call("POST", "/robots", (201,), json=camp.model_doc).json()
+        ms = api.call("POST", f"/robots/{robot['id']}/measurements", (201,),
+                      files={"file": ("cal.csv", camp.csv_text.encode(), "text/csv")}).json()
+        job = api.wait(api.submit(ms["id"], "geometric"))
+        served = api.predict_mm(job["calibration_id"], camp.model, camp.val)
+        capsys.readouterr()
+        demo._compensation(api, camp, job["calibration_id"], {})
+        story = flat(capsys.readouterr().out)
+    finally:
+        api.close()
+        server.stop()
+    local = identify(camp.model, camp.cal).predict(camp.val.joints, camp.val)
+    assert np.abs(served - local).max() < 0.05, np.abs(served - local).max()
+    reached = re.search(r"(\d+) targets .*? reaches (\d+) of them within 0.01 mm", story)
+    assert reached and reached.group(1) == reached.group(2) == str(camp.val.n_poses), story
+
+
 def test_demo_arguments_are_checked(tmp_path):
     env = base_env(f"sqlite:///{tmp_path / 'calib.db'}")
     r = calib("demo", "--robot", "model.json", cwd=tmp_path, env=env, timeout=60)
