@@ -159,13 +159,18 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
     if obs and obs["condition_number"] is not None:
         w(f'<div class="card"><div class="k">condition number of the measured poses (O1 '
           f'{_g3(obs["observability_index"])})</div><div class="v">{_g3(obs["condition_number"])}</div></div>')
+    cut = d.get("search_complete") is False
     if d:
         causes = "; ".join(finding_title(f) for f in findings) or d.get("verdict") or "none"
-        w(f'<div class="card"><div class="k">cause{"s" if len(findings) > 1 else ""} found</div>'
+        w(f'<div class="card"><div class="k">cause{"s" if len(findings) > 1 else ""} found'
+          f'{" so far (the search stopped at its time budget)" if cut else ""}</div>'
           f'<div class="v cause">{_e(causes)}</div></div>')
     w("</div>")
     for warning in answer.get("warnings") or []:
         w(f'<p class="explain warn"><b>Caution.</b> {_e(warning)}</p>')
+    if cut:
+        w(f'<p class="explain warn"><b>Caution.</b> {_e(d.get("verdict"))}: causes not reached were never tested '
+          f'(see the notes).</p>')
     if d.get("explanation"):
         w(f'<p class="explain">{_e(d["explanation"])}</p>')
     elif not d:

@@ -227,6 +227,22 @@ def test_report_shows_what_the_measured_poses_do_not_observe():
     assert "J4.compliance" not in least and "J1.a base.x" in text
 
 
+def test_report_of_a_search_stopped_at_its_time_budget_says_so():
+    """The headline tile and a caution say the search stopped, as the verdict and the JSON do; a complete answer
+    carries neither."""
+    verdict = "search stopped at its time budget: 1 cause(s) confirmed so far, not a complete answer"
+    finding = {"kind": "joint_compliance", "joints": ["J3"], "holdout_rms_before_mm": 0.4,
+               "holdout_rms_after_mm": 0.1, "gain_pct": 75.0, "evidence": "..."}
+    answer = {"id": "c0ffee", "model": ["geometric", "joint_compliance"], "metrics": {"n_poses": 150},
+              "parameters": [], "diagnosis": {"verdict": verdict, "search_complete": False, "findings": [finding],
+                                              "noise_floor_mm": 0.08, "explanation": "..."}}
+    text = text_of(render(answer))
+    assert "cause found so far (the search stopped at its time budget)" in text
+    assert f"Caution. {verdict}: causes not reached were never tested" in text
+    answer["diagnosis"].update(verdict="causes found", search_complete=True)
+    assert "time budget" not in text_of(render(answer))
+
+
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium is not installed (.ci/run installs it)")
 def test_report_prints_to_pdf(server, calibrations, tmp_path):
     pdf = tmp_path / "report.pdf"
