@@ -636,7 +636,9 @@ def _together(findings: list[dict], a: str, b: str) -> bool:
 def _split_lookalikes(api: Api, robot_id: str, ms_id: str, camp: Campaign, findings: list[dict], seed: int) -> None:
     """Plan N_SPLIT poses that tell the listed look-alikes apart; on the twin, measure them, add them to the
     campaign as a new set, run `auto` on it and tell whether each pair is still listed."""
-    pairs = [(f, a) for f in findings for a in f.get("indistinguishable_from") or []]
+    # two forms of one look-alike (on the model's masses, on an identified load) read the same here: one pair
+    pairs = list({(_label(f), _label(a)): (f, a) for f in findings for a in f.get("indistinguishable_from") or []}
+                 .values())
     say(f"The diagnosis lists causes these poses cannot tell apart: "
         f"{'; '.join(f'{_label(f)} ~ {_label(a)}' for f, a in pairs)}.", 3)
     nested = [(f, a) for f, a in pairs if _nested(f, a)]

@@ -295,6 +295,19 @@ def test_demo_validates_and_compensates_a_tree_with_coupled_and_fixed_rows(tmp_p
     assert reached and reached.group(1) == reached.group(2) == str(camp.val.n_poses), (seed, story)
 
 
+def test_two_forms_of_one_lookalike_are_one_pair(capsys):
+    """A finding can list the same look-alike in two forms (on the model's masses and on an identified load, as on
+    Agile Justin): the story names the pair once."""
+    spread = {"kind": "joint_compliance", "joints": ["T2", "T3", "T4c"]}
+    finding = {"kind": "joint_compliance", "joints": ["T4c"], "indistinguishable_from": [
+        {**spread, "form": "joint_compliance[T2,T3,T4c]"},
+        {**spread, "form": "joint_compliance[T2,T3,T4c] identified load"}]}
+    demo._split_lookalikes(None, "robot", "set", None, [finding], 0)  # nested only: no pose can split them
+    story = flat(capsys.readouterr().out)
+    assert story.count("joint_compliance[T4c] ~ joint_compliance[T2,T3,T4c]") == 1, story
+    assert story.count("joint_compliance[T2,T3,T4c] is joint_compliance[T4c]") == 1, story
+
+
 def test_demo_arguments_are_checked(tmp_path):
     env = base_env(f"sqlite:///{tmp_path / 'calib.db'}")
     r = calib("demo", "--robot", "model.json", cwd=tmp_path, env=env, timeout=60)
