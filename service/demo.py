@@ -45,6 +45,8 @@ for the geometry); the rest are random, the spread over the workspace the diagno
 N_SPLIT = 30
 """Poses planned (purpose `diagnosis`) to tell apart look-alike causes when the diagnosis lists some."""
 HOLDOUT_FRACTION = 0.3
+JOB_QUEUE_S = 120.0
+"""The demo waits for a job as long as the server's job time limit (CALIB_JOB_TIMEOUT_S) plus this, for the queue."""
 SIZE_RANGE = (4.0, 10.0)
 """A drawn hidden cause's part no geometric parameter can absorb is this many times the noise RMS."""
 EFFECTS = (*HIDDEN_KINDS, "none")
@@ -180,9 +182,12 @@ def stop_process_group(proc: subprocess.Popen, grace_s: float) -> None:
 class Api:
     """The few REST calls of the story, with problem documents turned into DemoError."""
 
-    def __init__(self, url: str, token: str | None):
+    def __init__(self, url: str, token: str | None, job_wait_s: float = 600.0):
+        """job_wait_s: how long `wait` waits for a job; the server's own job time limit plus the queue's time
+        (a client limit below the server's cut an hour-long job at 600 s)."""
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.c = httpx.Client(base_url=url, timeout=120, headers=headers)
+        self.job_wait_s = job_wait_s
 
     def close(self) -> None:
         self.c.close()
@@ -203,7 +208,8 @@ class Api:
     def submit(self, ms_id: str, mode: str) -> str:
         return self.call("POST", "/jobs", (202,), json={"measurement_set_id": ms_id, "model": mode}).headers["location"]
 
-    def wait(self, loc: str, bar: ProgressBar | None = None, timeout: float = 600.0) -> dict:
+    def wait(self, loc: str, bar: ProgressBar | None = None) -> dict:
+        timeout = self.job_wait_s
         deadline = time.monotonic() + timeout
         try:
             while True:
@@ -443,7 +449,7 @@ def _story(args, settings: Settings, camp: Campaign | None, seed: int, log: Path
     chapter("The service")
     db = settings.database_url
     server = Server.start(db, log)
-    api = Api(server.url, settings.api_token)
+    api = Api(server.url, settings.api_token, settings.job_timeout_s + JOB_QUEUE_S)
     try:
         say(f"calib serve is running on {server.url} (database {_show_db(db)}; its log: {log}).", 3)
         return _chapters(args, api, server, camp, seed, t_start, chapter)
