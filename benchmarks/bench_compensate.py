@@ -68,13 +68,15 @@ def _achieved(world, joints, columns=None):
 
 
 def _scipy_one(robot, target, seed, lo, hi, method):
+    A = robot.model.coupling_matrix()
+
     def fun(z):
         q = (z * SCALE)[None]
-        return _point_and_jacobian(robot, q, _rows(None, np.arange(1), q))[0][0] - target
+        return _point_and_jacobian(robot, q, _rows(None, np.arange(1), q), A)[0][0] - target
 
     def jac(z):
         q = (z * SCALE)[None]
-        return _point_and_jacobian(robot, q, _rows(None, np.arange(1), q))[1][0] * SCALE
+        return _point_and_jacobian(robot, q, _rows(None, np.arange(1), q), A)[1][0] * SCALE
 
     z0 = np.clip(seed / SCALE, lo + 1e-12, hi - 1e-12)
     return least_squares(fun, z0, jac=jac, bounds=(lo, hi), method=method).x * SCALE
