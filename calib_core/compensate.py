@@ -422,7 +422,7 @@ def _effects_jacobian(robot: CalibratedRobot, q: np.ndarray, cols: Measurements,
     if N == 0:
         return np.zeros((0, 3, k))
     moved = (q[None] + EFFECT_STEP * A.T[:, None, :]).reshape(k * N, -1)  # each actuated joint stepped in turn
-    dq1, dp1 = robot.effect_offsets(moved, _tiled(cols, moved, k))
+    dq1, dp1 = robot.effect_offsets(moved, _rows(cols, np.tile(np.arange(N), k), moved))
     d_dq = (dq1.reshape(k, N, -1) - dq) / EFFECT_STEP  # (k, N, n)
     d_dp = (dp1.reshape(k, N, 3) - dp) / EFFECT_STEP  # (k, N, 3)
     return np.einsum("nir,knr->nik", Jq, d_dq) + d_dp.transpose(1, 2, 0)
@@ -436,10 +436,3 @@ def _point_and_jacobian(robot: CalibratedRobot, q: np.ndarray, cols: Measurement
         J = J + _effects_jacobian(robot, q, cols, A, Jq, dq, dp)
     return p, J
 
-
-def _tiled(cols: Measurements, joints: np.ndarray, k: int) -> Measurements:
-    """The columns of N poses repeated k times, at these (k N, n) joints."""
-    tile = lambda a: None if a is None else np.tile(a, (k,) + (1,) * (np.ndim(a) - 1))  # noqa: E731
-    return Measurements(joints=joints, points=np.zeros((len(joints), 3)), timestamp=tile(cols.timestamp),
-                        temperature=tile(cols.temperature), payload=tile(cols.payload), target=tile(cols.target),
-                        setup=tile(cols.setup), setup_names=cols.setup_names, tau=tile(cols.tau))

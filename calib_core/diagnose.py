@@ -1150,11 +1150,12 @@ class _Search:
             pool += plays
             thresholds = _thresholds(pool, alpha)
             ranked = sorted(ranked + screen(self.current, meas, sigma, plays, x_ref, alpha)[0], key=lambda c: c.bic)
+        significant = np.array([c.log_p <= thresholds[id(c.effect)] for c in ranked], bool)
+        untested = np.cumsum(significant[::-1])[::-1]  # significant candidates from each rank on
         for k, c in enumerate(ranked):
-            if c.log_p > thresholds[id(c.effect)]:
+            if not significant[k]:
                 continue
-            if self.late(f"{sum(r.log_p <= thresholds[id(r.effect)] for r in ranked[k:])} candidate(s) significant "
-                         f"in the fit, not yet tested on held-out poses"):
+            if self.late(f"{untested[k]} candidate(s) significant in the fit, not yet tested on held-out poses"):
                 return False
             who = _who(c.effect, model)
             broad = isinstance(c.effect, SessionStep) or len(c.effect.joints) > 1  # spread over the arm already

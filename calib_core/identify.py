@@ -188,7 +188,9 @@ class Calibration:
         """Fit and held-out figures (mm) over the poses that are not outliers, the robot's error, not the bad
         readings'; with outliers named, the RMS and max over every pose beside them (`*_with_outliers_mm`)."""
         every = np.linalg.norm(self.solution.residual, axis=1)
-        d = every[self.inliers()] if len(every) > len(self.solution.outliers) else every
+        keep = self.inliers()
+        keep = keep if keep.any() else ~keep  # every pose an outlier: the figures over all of them
+        d = every[keep]
         out = {"n_poses": int(len(every)), "n_parameters": int(len(self.solution.x)),
                "n_geometric_parameters": int(len(self.free)), "rms_mm": _rms(d),
                "mean_mm": float(d.mean()), "max_mm": float(d.max()), "sigma0": float(np.sqrt(self.solution.s2)),
@@ -199,8 +201,7 @@ class Calibration:
         if len(self.solution.outliers):
             out["rms_with_outliers_mm"], out["max_with_outliers_mm"] = _rms(every), float(every.max())
         if self.holdout_residual_mm is not None:
-            kept = self.holdout_residual_mm[self.inliers()]
-            kept = kept if kept.size else self.holdout_residual_mm
+            kept = self.holdout_residual_mm[keep]
             out["holdout_rms_mm"] = _rms(kept)
             out["holdout_max_mm"] = float(kept.max())
             if len(self.solution.outliers):
