@@ -395,6 +395,11 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
 
 PLAY_PASSES = 6
 """Times the play's switch is classified again on the residual with the fitted play put back."""
+PLAY_SETTLED = 0.002
+"""The switch has settled when no calibration pose's flank factor (-1 .. 1) moved by more than this in a pass:
+fitting it again would give back nearly the same fit, so the passes stop there. On 80 drawn spray7 plays it fits
+46 % fewer models than every pass, and the plays found fit the poses within 0.2 % of theirs (0.01 saved 56 % but
+was 5 % worse on one draw: the soft play's search starts from the sharp one's switch)."""
 SATURATES = 1.5
 """A play with fitted softness must reach tanh(1.5) = 0.9 of its flanks somewhere, else it is a spring."""
 STIFFENING = (0.5, 1.5, 4.0, 12.0, 30.0)
@@ -821,9 +826,12 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
                 found = feats.play(j, beta, soft)
                 if found is None:
                     break
+                settled = play is not None and _flank_moved(play, found, ref_ctx) <= PLAY_SETTLED
                 play = found
                 if soft and np.abs(feats.F @ np.asarray(play.load_coef)).max() < SATURATES:
                     play = None  # it never reaches the flanks of its play: that is a spring, not a play
+                    break
+                if settled:
                     break
                 if late():  # the joint in progress is left out
                     return out
@@ -837,6 +845,11 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
                 out.append(play)
                 sharp = beta if not soft else sharp
     return out
+
+
+def _flank_moved(a: Backlash, b: Backlash, ctx: Context) -> float:
+    """The largest change of the flank factor (-1 .. 1) on these poses from play a's switch to b's."""
+    return float(np.abs(a.flank(a.load(ctx)) - b.flank(b.load(ctx))).max())
 
 
 def _switch(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta0: np.ndarray) -> np.ndarray:

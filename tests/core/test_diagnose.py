@@ -404,6 +404,37 @@ def test_a_play_read_off_the_noise_gains_nothing_on_held_out_poses(seed):
     assert np.mean(ratios) > 0.99, (ratios, seed)
 
 
+@pytest.mark.parametrize("kind", PLAYS)
+def test_the_play_search_stops_where_its_switch_has_settled(kind, seed, monkeypatch):
+    """A hidden play (drawn joint, size, seed): the search for its switch stops once a pass moves no pose's flank
+    by more than PLAY_SETTLED (a refit would give back nearly the same fit). It fits fewer models than running
+    every pass, finds the same forms, and they fit the poses as well (passes past the settled point only creep,
+    or flip a pose that sits at the switch)."""
+    world, info, meas = _world(kind, _size(seed), seed)
+    fit = _Fitter(SPRAY, meas, None, 5, None, 1.0)
+    geo = fit()
+    j = SPRAY.joint_names.index(info["joints"][0])
+    calls = []
+
+    def counted(*a, **k):
+        calls.append(1)
+        return fit(*a, **k)
+
+    def rss(play):
+        return float(np.sum(fit((play,), geo.x, folds=0).solution.residual ** 2))
+
+    settled = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j], counted)
+    n_settled = len(calls)
+    monkeypatch.setattr("calib_core.diagnose.PLAY_SETTLED", -1.0)  # never settled: every pass
+    calls.clear()
+    every = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j], counted)
+    where = (kind, info["joints"], seed, n_settled, len(calls))
+    assert settled and [p.fitted_softness for p in settled] == [p.fitted_softness for p in every], where
+    assert n_settled < len(calls), where
+    for a, b in zip(settled, every):
+        assert rss(a) <= 1.02 * rss(b), (rss(a), rss(b), where)
+
+
 @pytest.mark.slow
 def test_no_cause_means_no_finding(seed):
     """Wrong masses in the model, a robot repeating 2.5x worse than usual and two bad readings: nothing to find,
