@@ -32,7 +32,9 @@ from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import at_gap, probes, session_clock, step_candidates
 from .identify import Calibration, effect_bases, identify
+from . import shared_motion
 from .select import select_geometry
+from .shared_motion import SharedMotion, describe as describe_shared
 from .solve import OUTLIER_U
 from .io import Measurements
 from .model import RobotModel
@@ -1056,7 +1058,8 @@ def _excess(cal: Calibration, floor: float) -> float:
 def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray, alpha: float,
              load_pool: dict[int, LoadCompliance]) -> list[dict]:
     """What the residual left follows: time order (a step or a drift), one joint, the load, a workspace
-    region; each a family tested with the same F-test (Bonferroni over the families)."""
+    region, each a family tested with the same F-test; with several targets per pose, whether they move together
+    (shared_motion's t-test); Bonferroni over the families."""
     model = cal.model
     fams = probes(model, meas)
     fams += _distributed(load_pool) if load_pool else []
@@ -1067,7 +1070,9 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
     # a rigid shift of the late poses hardly follows)
     steps = step_candidates(meas, list(np.flatnonzero(model.moving)))
     ranked, _ = screen(cal, meas, sigma, fams + steps, x_ref, alpha)
-    n_tests = len(fams) + 1
+    shared = _shared_motion(cal, meas, sigma, x_ref)
+    n_tests = len(fams) + 1 + (shared is not None)
+    together = next((s for s in shared or [] if s.p_value < alpha / n_tests), None)  # the largest significant
     out, seen_step = [], False
     for c in ranked:
         is_step = isinstance(c.effect, SessionStep)
@@ -1085,7 +1090,22 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
             what = c.effect.describe(model)
         out.append({"what": what, "joints": _names(c.effect, model), "p_value": c.p_value,
                     "share_pct": 100.0 * c.explained, "effect": c.effect})
+    if together is not None:
+        entry = {"what": describe_shared(together, model), "joints": [model.joint_names[j] for j in
+                                                                       together.shared_joints],
+                 "p_value": together.p_value, "share_pct": 100.0 * together.share, "shared_rms_mm": together.rms_mm,
+                 "family": "shared_by_targets", "effect": None}
+        out.insert(next((i for i, f in enumerate(out) if f["p_value"] > together.p_value), len(out)), entry)
     return out
+
+
+def _shared_motion(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray
+                   ) -> list[SharedMotion] | None:
+    """shared_motion.shared_motion on the calibration's residual (None with one target per pose)."""
+    if not shared_motion.pose_groups(meas):
+        return None
+    r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
+    return shared_motion.shared_motion(chain, meas, r.reshape(-1, 3) * sigma[:, None], sigma, Q)
 
 
 def _cause(e: Effect):
@@ -1471,6 +1491,11 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
     else:
         correction = None
         fix = "no smooth correction helps on held-out poses, so the model is not extended"
+    if any(f.get("family") == "shared_by_targets" for f in follows):
+        fix += ("; what the targets of a pose share and the joints do not predict is noise of each pose (the shared "
+                "joints landing a little differently at each visit, joint values commanded rather than measured, "
+                "the base moving): no model of the robot removes it, a reference target on the shared part "
+                "measured at every pose or measured joint positions would")
     return {"kind": "unexplained", "form": "unexplained", "joints": [], "correction": correction,
             "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
             "gain_pct": 100.0 * (hb - ha) / hb, "model_error_before_mm": mb, "model_error_after_mm": ma,

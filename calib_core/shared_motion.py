@@ -1,0 +1,118 @@
+"""Motion the targets measured at one pose share: whether the residual left moves them together.
+
+Several targets (two hands, several SMRs) measured at the same joint values in the same setup see the robot standing
+in one place. What is their own (noise, the joints beyond where their chains part) is independent between them; a
+motion upstream of the split moves them together: a joint every target hangs on landing a little differently at each
+visit, the base rocking or shifting, the instrument's frame moving between poses. Each such motion u (a rotation of a
+shared joint, of the base about one of its axes, a shift along one) moves target a by u_a delta at a pose, so the
+projections (u_a . r_a)(u_b . r_b) of two targets' residuals have mean var(delta) |u_a|^2 |u_b|^2 > 0, and mean zero
+when the targets' errors are independent, whatever each target's own error looks like (up to the fit's coupling of
+the rows, -s^2 u_a' Q_a Q_b' u_b from the hat matrix, which is added back). A one-sided t-test over the poses per
+motion, Bonferroni over the motions.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from .identify import DISTINCT_DECIMALS
+from .io import Measurements
+from .kinematics import Chain, _cross
+from .model import RobotModel
+
+MIN_POSES = 10
+"""Poses with two or more targets needed before the test is made."""
+AXES = "xyz"
+
+
+@dataclass(frozen=True)
+class SharedMotion:
+    motion: str  # the shared motion that fits best, in words: "T2 turning", "the base tilting about its x axis", ...
+    size: float  # its RMS per pose: rad (a rotation) or mm (a shift)
+    unit: str  # "rad" or "mm"
+    share: float  # fraction of a target's residual mean square it explains (0..1)
+    rms_mm: float  # RMS (3-D) of what it moves at one target, mm
+    p_value: float  # Bonferroni over the motions tried: the targets' residuals are not related within a pose
+    n_poses: int  # poses with two or more targets
+    shared_joints: tuple[int, ...]  # moving model rows on the way to every target
+
+
+def pose_groups(meas: Measurements) -> list[np.ndarray]:
+    """Rows of every pose measured with several targets: the same setup and joint values (to DISTINCT_DECIMALS),
+    each target once (a pose visited again is another placement of the robot, not the same one)."""
+    if meas.target is None:
+        return []
+    setup = np.zeros(meas.n_poses, int) if meas.setup is None else meas.setup
+    key = np.c_[setup, np.round(meas.joints, DISTINCT_DECIMALS)]
+    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(inverse, kind="stable")
+    groups = np.split(order, np.flatnonzero(np.diff(inverse[order])) + 1)
+    return [g for g in groups if len(g) > 1 and len(np.unique(meas.target[g])) == len(g)]
+
+
+def shared_joints(model: RobotModel) -> tuple[int, ...]:
+    """Moving rows every target's chain passes through (the torso of a two-armed robot)."""
+    on_way = model.ancestors()[model.target_rows].all(axis=0)
+    return tuple(int(j) for j in np.flatnonzero(on_way & np.asarray(model.moving, bool)))
+
+
+def motions(chain: Chain) -> list[tuple[str, str, np.ndarray]]:
+    """(what, unit, displacement per unit (N, 3) mm) of every motion upstream of all targets: each shared joint
+    turning (or sliding), the base turning about each of its axes through its origin, and shifting along each."""
+    model, n = chain.model, chain.N
+    Jq = chain.joint_jacobian()
+    Rb = np.broadcast_to(chain.Rb, (n, 3, 3))
+    ob = np.broadcast_to(chain.base_origin, (n, 3))
+    out = [(f"{model.joint_names[j]} {'sliding' if model.prismatic[j] else 'turning'}",
+            "mm" if model.prismatic[j] else "rad", Jq[:, :, j]) for j in shared_joints(model)]
+    out += [(f"the base tilting about its {a} axis", "rad", _cross(Rb[:, :, k], chain.p - ob))
+            for k, a in enumerate(AXES)]
+    out += [(f"the base shifting along its {a} axis", "mm", Rb[:, :, k].copy()) for k, a in enumerate(AXES)]
+    return out
+
+
+def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sigma: np.ndarray,
+                  Q: np.ndarray) -> list[SharedMotion] | None:
+    """The test over the poses with several targets. chain: the calibrated model at meas' poses; residual_mm (N, 3)
+    measured minus predicted; sigma (N,) the fit's 1-sigma per coordinate; Q (3N, r) an orthonormal basis of the
+    fit's weighted Jacobian (rows pose-major). Every motion tried, largest share first; None when fewer than
+    MIN_POSES poses have two targets."""
+    groups = pose_groups(meas)
+    if len(groups) < MIN_POSES:
+        return None
+    pairs = [(g[i], g[j], k) for k, g in enumerate(groups) for i, j in zip(*np.triu_indices(len(g), 1))]
+    a, b, pose_of = np.array(pairs).T
+    w = residual_mm / sigma[:, None]
+    Qp = Q.reshape(len(w), 3, -1)
+    s2 = float((w**2).sum() / max(w.size - Q.shape[1], 1))  # the weighted variance the fit leaves
+    rows = np.concatenate(groups)
+    ms = float(np.mean(np.sum(residual_mm[rows] ** 2, axis=1)))
+    found = []
+    cand = motions(chain)
+    for what, unit, u in cand:
+        uw = u / sigma[:, None]
+        ea, eb = (uw[a] * w[a]).sum(1), (uw[b] * w[b]).sum(1)
+        coupling = np.einsum("pc,pck,pdk,pd->p", uw[a], Qp[a], Qp[b], uw[b])
+        z = np.bincount(pose_of, ea * eb + s2 * coupling, minlength=len(groups))
+        se = z.std(ddof=1) / np.sqrt(len(z))
+        p = min(1.0, len(cand) * float(stats.t.sf(z.mean() / se, len(z) - 1))) if se > 0 else 1.0
+        ua2, ub2 = (u[a] ** 2).sum(1), (u[b] ** 2).sum(1)
+        var = max(float(((u[a] * residual_mm[a]).sum(1) * (u[b] * residual_mm[b]).sum(1)).sum() / (ua2 * ub2).sum()),
+                  0.0)  # var(delta), in the motion's unit squared
+        moved = var * float(np.mean((u[rows] ** 2).sum(1)))
+        found.append(SharedMotion(motion=what, size=float(np.sqrt(var)), unit=unit, share=min(moved / ms, 1.0),
+                                  rms_mm=float(np.sqrt(moved)), p_value=p, n_poses=len(groups),
+                                  shared_joints=shared_joints(chain.model)))
+    return sorted(found, key=lambda s: -s.share)
+
+
+def describe(s: SharedMotion, model: RobotModel) -> str:
+    """What the residual follows, in words a process engineer can act on."""
+    size = f"{1e3 * s.size:.2f} mrad" if s.unit == "rad" else f"{s.size:.3f} mm"
+    return (f"the pose as a whole: the targets measured at one pose move together, most like {s.motion} by "
+            f"{size} RMS from pose to pose ({s.rms_mm:.2f} mm RMS at a target, over {s.n_poses} poses): a motion "
+            "upstream of where their chains part (a joint they all hang on, the base or mounting) or of the "
+            "instrument's frame between poses")
