@@ -8,7 +8,8 @@ benchmarks/real_cells.py's split, 1000 + k the k-th split of benchmarks/real_dia
 blind diagnosis (`diagnose` on the calibration part, 5-10 CPU minutes per split) as the last row. --probes asks
 what the fixed forms leave: would the loads taken at the deflected pose (the published model's implicit torque
 equilibrium) or a joint offset that follows the direction each joint last moved in (friction, hysteresis) help?
-Each is fitted linearly beside every parameter of the model, on the calibration part, and judged held out.
+Each is fitted linearly beside every parameter of the model, on the calibration part, and judged held out; and
+would weighting the motion both hands share at a pose (shared_motion) as noise of that pose (GLS) help?
 
     .venv/bin/python -m benchmarks.justin_elastic [--splits 0 1000 1001] [--blind] [--probes]
     .venv/bin/python -m benchmarks.justin_elastic --kfold 10   # each pose held out once, 90 % calibrate
@@ -82,7 +83,38 @@ def probes(cal, meas, train: np.ndarray) -> list[tuple[str, float, float]]:
             c = np.linalg.lstsq(A[rows], y[rows], rcond=1e-10)[0]
             held.append(_mean_mm((y - A @ c).reshape(-1, 3)[~train]))
         out.append((label, *held))
+    W = _shared_as_noise(cal, meas, train)
+    fits = [np.linalg.lstsq(W(J)[rows], W(y[:, None])[rows, 0], rcond=1e-10)[0] for W in (lambda A: A, W)]
+    out.append(("the hands' shared motion weighted as noise of each pose (GLS)",
+                *[_mean_mm((y - J @ c).reshape(-1, 3)[~train]) for c in fits]))
     return out
+
+
+def _shared_as_noise(cal, meas, train: np.ndarray):
+    """The whitening of the rows of every pose when the motion the hands share (shared_motion on the calibration
+    rows' residual: its direction u at each hand, its RMS tau per pose) is noise of that pose beside independent
+    noise s^2 per coordinate (the rest of the residual): Sigma = s^2 I + tau^2 u u' per pose, W = Sigma^-1/2 s.
+    Returns a function applying W to (3N, k) rows."""
+    chain, dp = cal.robot.chain(meas.joints, meas)
+    res = meas.points - chain.p - dp
+    rows = np.flatnonzero(train)
+    sub = meas.subset(rows)
+    top = SM.shared_motion(cal.robot.chain(sub.joints, sub)[0], sub, res[rows], sub.noise_sigma_mm(),
+                           np.zeros((3 * len(rows), 0)))[0]
+    u = {what: v for what, _, v in SM.motions(chain)}[top.motion]
+    s2 = float(np.mean(np.sum(res[rows] ** 2, axis=1))) * (1 - top.share) / 3
+    pairs = np.array([g[:2] for g in SM.pose_groups(meas)])
+    idx = np.concatenate([3 * pairs[:, :1] + np.arange(3), 3 * pairs[:, 1:] + np.arange(3)], axis=1)  # (P, 6)
+    U = u.reshape(-1)[idx]
+    a2 = (U**2).sum(1)
+    c = 1 - 1 / np.sqrt(1 + top.size**2 * a2 / s2)
+
+    def whiten(A: np.ndarray) -> np.ndarray:
+        out = A.copy()
+        proj = np.einsum("pi,pik->pk", U, A[idx]) / a2[:, None]
+        out[idx] = A[idx] - c[:, None, None] * U[:, :, None] * proj[:, None, :]
+        return out
+    return whiten
 
 
 def fixed_forms(model, train, held) -> list[tuple[str, dict, float, object]]:
@@ -178,6 +210,9 @@ def run(split: int, blind: bool = False, probe: bool = False) -> list[tuple[str,
         d = DG.diagnose(model, train)
         named = "; ".join(f"{f['kind']} {','.join(f['joints'])}" for f in d.findings)
         print(f"split {split}: blind diagnosis named: {named}", flush=True)
+        for f in d.findings:
+            if f["kind"] == "unexplained":
+                print(f"split {split}: unexplained: {f['evidence']}", flush=True)
         out.append(("blind diagnosis (`diagnose`, the causes it names)", evaluate(d.calibration, held), time.time() - t0))
     return out
 

@@ -5,10 +5,11 @@ in one place. What is their own (noise, the joints beyond where their chains par
 motion upstream of the split moves them together: a joint every target hangs on landing a little differently at each
 visit, the base rocking or shifting, the instrument's frame moving between poses. Each such motion u (a rotation of a
 shared joint, of the base about one of its axes, a shift along one) moves target a by u_a delta at a pose, so the
-projections (u_a . r_a)(u_b . r_b) of two targets' residuals have mean var(delta) |u_a|^2 |u_b|^2 > 0, and mean zero
-when the targets' errors are independent, whatever each target's own error looks like (up to the fit's coupling of
-the rows, -s^2 u_a' Q_a Q_b' u_b from the hat matrix, which is added back). A one-sided t-test over the poses per
-motion, Bonferroni over the motions.
+projections u_a . r_a and u_b . r_b of two targets' residuals are positively correlated over the poses, and
+uncorrelated when the targets' errors are independent, whatever each target's own error looks like (up to the fit's
+coupling of the rows, -u_a' Q_a Q_b' u_b from the hat matrix, which is added back). A one-sided rank correlation over
+the poses (one pair of targets each) per motion, Bonferroni over the motions; var(delta) from the mean product
+(u_a . r_a)(u_b . r_b) / (|u_a|^2 |u_b|^2).
 """
 from __future__ import annotations
 
@@ -83,22 +84,25 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
     groups = pose_groups(meas)
     if len(groups) < MIN_POSES:
         return None
-    pairs = [(g[i], g[j], k) for k, g in enumerate(groups) for i, j in zip(*np.triu_indices(len(g), 1))]
-    a, b, pose_of = np.array(pairs).T
+    a, b = np.array([g[:2] for g in groups]).T  # one pair per pose: the poses are the independent units
     w = residual_mm / sigma[:, None]
     Qp = Q.reshape(len(w), 3, -1)
-    s2 = float((w**2).sum() / max(w.size - Q.shape[1], 1))  # the weighted variance the fit leaves
     rows = np.concatenate(groups)
-    ms = float(np.mean(np.sum(residual_mm[rows] ** 2, axis=1)))
+    dof = w.size / max(w.size - Q.shape[1], 1)  # a fitted residual is smaller than the error by the fit's dof
+    ms = dof * float(np.mean(np.sum(residual_mm[rows] ** 2, axis=1)))
     found = []
     cand = motions(chain)
     for what, unit, u in cand:
         uw = u / sigma[:, None]
-        ea, eb = (uw[a] * w[a]).sum(1), (uw[b] * w[b]).sum(1)
-        coupling = np.einsum("pc,pck,pdk,pd->p", uw[a], Qp[a], Qp[b], uw[b])
-        z = np.bincount(pose_of, ea * eb + s2 * coupling, minlength=len(groups))
-        se = z.std(ddof=1) / np.sqrt(len(z))
-        p = min(1.0, len(cand) * float(stats.t.sf(z.mean() / se, len(z) - 1))) if se > 0 else 1.0
+        na, nb = np.linalg.norm(uw[a], axis=1), np.linalg.norm(uw[b], axis=1)
+        if not (np.all(na > 0) and np.all(nb > 0)):
+            continue  # a motion that leaves a target still at some pose
+        ea, eb = (uw[a] * w[a]).sum(1) / na, (uw[b] * w[b]).sum(1) / nb  # N(0, 1) each when nothing is shared
+        # a rank correlation (products of two projections have tails too heavy for a t-test), with the fit's own
+        # coupling of the two rows added back: corr(ea, eb) = -ua' Q_a Q_b' ub / (|ua| |ub|) from the hat matrix
+        coupling = np.einsum("pc,pck,pdk,pd->p", uw[a], Qp[a], Qp[b], uw[b]) / (na * nb)
+        rho = stats.spearmanr(ea, eb).statistic + float(np.mean(coupling))
+        p = min(1.0, len(cand) * float(stats.norm.sf(rho * np.sqrt(len(a) - 1)))) if np.isfinite(rho) else 1.0
         ua2, ub2 = (u[a] ** 2).sum(1), (u[b] ** 2).sum(1)
         var = max(float(((u[a] * residual_mm[a]).sum(1) * (u[b] * residual_mm[b]).sum(1)).sum() / (ua2 * ub2).sum()),
                   0.0)  # var(delta), in the motion's unit squared

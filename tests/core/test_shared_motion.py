@@ -107,7 +107,7 @@ def test_a_motion_upstream_of_the_arms_is_found_shared(tree, seed, motion):
     significant = [s for s in found if s.p_value < 0.01]
     assert significant, (seed, motion, joint, size, found)
     # one motion explains no more than the shared motion moves, and a large part of it
-    assert truth / 3 < significant[0].share < truth + 0.1, (seed, motion, joint, size, truth, found)
+    assert truth / 3 < significant[0].share < truth + 0.15, (seed, motion, joint, size, truth, found)
 
 
 def test_each_hand_on_its_own_is_not_shared(tree, seed):
