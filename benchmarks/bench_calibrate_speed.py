@@ -91,7 +91,7 @@ def scipy_selection(model, meas, folds: int = 5) -> str:
             x = fit(assign != k)
             test = assign == k
             d[test] = np.linalg.norm(meas.points[test] - K.forward(model, x, meas.joints[test], R0), axis=1)
-        rows.append((label, *_fold_stats(d, folds)))
+        rows.append((label, *_fold_stats(d, assign, folds)))
     best = min(rows, key=lambda r: r[1])
     return next(r[0] for r in rows if r[1] <= best[1] + best[2])
 

@@ -103,7 +103,7 @@ def _shared_as_noise(cal, meas, train: np.ndarray):
                            np.zeros((3 * len(rows), 0)))[0]
     u = {what: v for what, _, v in SM.motions(chain)}[top.motion]
     s2 = float(np.mean(np.sum(res[rows] ** 2, axis=1))) * (1 - top.share) / 3
-    pairs = np.array([g[:2] for g in SM.pose_groups(meas)])
+    pairs = np.array([g[:2] for g in SM.pose_groups(meas, cal.model)])
     idx = np.concatenate([3 * pairs[:, :1] + np.arange(3), 3 * pairs[:, 1:] + np.arange(3)], axis=1)  # (P, 6)
     U = u.reshape(-1)[idx]
     a2 = (U**2).sum(1)

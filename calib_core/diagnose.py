@@ -34,7 +34,6 @@ from .effects.structure import at_gap, probes, session_clock, step_candidates
 from .identify import Calibration, effect_bases, identify
 from . import shared_motion
 from .select import select_geometry
-from .shared_motion import SharedMotion, describe as describe_shared
 from .solve import OUTLIER_U
 from .io import Measurements
 from .model import RobotModel
@@ -351,14 +350,17 @@ def holdout_gain(before: Calibration, after: Calibration) -> tuple[float, float]
     poses, as a play's switch gives) and a Wilcoxon signed-rank test (a gain on most poses while one pose the old
     model missed by 15 mm swells the t-test's variance: the iiwa's upright pose). A pose counts unless both fits
     name it an outlier: one the cause brings back from the outliers is where the cause shows (a bent link and a
-    scale error at 5x the noise had a sixth of the poses flagged by the geometric fit, and the gain on them hidden)."""
+    scale error at 5x the noise had a sixth of the poses flagged by the geometric fit, and the gain on them hidden).
+    The targets measured at one pose count as one in the tests (their drops summed): they share the pose's errors."""
     keep = before.inliers() | after.inliers()
     d = before.holdout_residual_mm[keep] ** 2 - after.holdout_residual_mm[keep] ** 2
     drop = float(d.mean())
+    if before.pose_index is not None:  # the targets of one pose are one unit: they share its errors (shared_motion)
+        d = np.bincount(np.unique(before.pose_index[keep], return_inverse=True)[1].ravel(), d)
     sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
     if sd <= 0.0:
         return (0.0 if drop > 0 else 1.0), drop
-    p_mean = float(stats.t.sf(drop / (sd / np.sqrt(len(d))), len(d) - 1))
+    p_mean = float(stats.t.sf(d.mean() / (sd / np.sqrt(len(d))), len(d) - 1))
     p_rank = float(stats.wilcoxon(d, alternative="greater").pvalue)
     return min(1.0, 2.0 * min(p_mean, p_rank)), drop
 
@@ -1059,7 +1061,7 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
              load_pool: dict[int, LoadCompliance]) -> list[dict]:
     """What the residual left follows: time order (a step or a drift), one joint, the load, a workspace
     region, each a family tested with the same F-test; with several targets per pose, whether they move together
-    (shared_motion's t-test); Bonferroni over the families."""
+    (shared_motion's rank test); Bonferroni over the families."""
     model = cal.model
     fams = probes(model, meas)
     fams += _distributed(load_pool) if load_pool else []
@@ -1091,7 +1093,7 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
         out.append({"what": what, "joints": _names(c.effect, model), "p_value": c.p_value,
                     "share_pct": 100.0 * c.explained, "effect": c.effect})
     if together is not None:
-        entry = {"what": describe_shared(together, model), "joints": [model.joint_names[j] for j in
+        entry = {"what": shared_motion.describe(together, model), "joints": [model.joint_names[j] for j in
                                                                        together.shared_joints],
                  "p_value": together.p_value, "share_pct": 100.0 * together.share, "shared_rms_mm": together.rms_mm,
                  "family": "shared_by_targets", "effect": None}
@@ -1100,9 +1102,9 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
 
 
 def _shared_motion(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray
-                   ) -> list[SharedMotion] | None:
+                   ) -> list[shared_motion.SharedMotion] | None:
     """shared_motion.shared_motion on the calibration's residual (None with one target per pose)."""
-    if not shared_motion.pose_groups(meas):
+    if not shared_motion.pose_groups(meas, cal.model):
         return None
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
     return shared_motion.shared_motion(chain, meas, r.reshape(-1, 3) * sigma[:, None], sigma, Q)

@@ -54,6 +54,7 @@ class CalibratedRobot:
     effect_values: tuple[np.ndarray, ...] = ()
     x_basis: np.ndarray | None = None  # the geometry the effect bases were fitted on (default: x)
     setup_names: tuple[str, ...] = ("",)  # one base pose per setup, in this order
+    pose_index: np.ndarray | None = None  # (N,) the independent unit of each row (Measurements.pose_index)
 
     def effect_offsets(self, joints: np.ndarray, columns: Measurements | None = None):
         """Joint offsets (N, n) and displacements (N, 3) mm of the identified effects at these joints, with
@@ -130,6 +131,7 @@ class Calibration:
     noise_model: str = ""  # which noise model weighted the fit: the CSV's sigma or an instrument preset
     unmodelled_mm: float = 0.0  # per-axis std of held-out structure no cause in the model explains (diagnose sets it)
     setup_names: tuple[str, ...] = ("",)  # one base pose per setup, in this order
+    pose_index: np.ndarray | None = None  # (N,) the independent unit of each row (Measurements.pose_index)
 
     @property
     def warnings(self) -> list[str]:
@@ -506,7 +508,7 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
                       point_ids=list(meas.point_ids), effects=tuple(effects), sigma_mm=sigma,
                       model_error_mm=s_model, sigma0_measurement=sigma0_measurement, prior_scale=prior_scale,
                       x_basis=x_ref if effects else None, noise_model=meas.noise_source(),
-                      setup_names=meas.setup_names)
+                      setup_names=meas.setup_names, pose_index=meas.pose_index(DISTINCT_DECIMALS))
     if folds > 1 and meas.n_poses >= 2 * folds:
         fold_bases = None
         if refold is not None:
@@ -527,6 +529,17 @@ def fold_ids(n_poses: int, folds: int) -> np.ndarray:
     return out
 
 
+def pose_folds(meas: Measurements, folds: int) -> np.ndarray:
+    """Fold of every row: fold_ids over the independent units (Measurements.pose_index), so the targets measured
+    at one pose are held out together; the rows' own fold_ids when every row is its own unit (one target)."""
+    if meas.target is None:
+        return fold_ids(meas.n_poses, folds)
+    _, unit = np.unique(meas.pose_index(DISTINCT_DECIMALS), return_inverse=True)
+    if unit.max() + 1 == meas.n_poses:
+        return fold_ids(meas.n_poses, folds)
+    return fold_ids(int(unit.max()) + 1, folds)[unit.ravel()]
+
+
 def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases=None,
                    effect_prior=None, prior_scale: float = 1.0, start: np.ndarray | None = None,
                    evals: ChainEvaluations | None = None, fold_bases=None) -> np.ndarray:
@@ -540,7 +553,7 @@ def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bas
     if bases is None:
         evals = evals or ChainEvaluations(model, meas.joints, R0, labels=meas.labels)
         return held_out(model, meas, x0, evals, [Folds(sigma, idx, loss, regularize, prior_scale, start)], folds)[0]
-    assign = fold_ids(meas.n_poses, folds)
+    assign = pose_folds(meas, folds)
     out = np.empty(meas.n_poses)
     warm = {} if start is None else {"damping": WARM_DAMPING, "ftol": WARM_FTOL}
     for k in range(folds):
@@ -585,7 +598,7 @@ def held_out(model, meas, x0, evals: ChainEvaluations, models: list[Folds], fold
     for every parameter vector the fits ask for, in one batched pass (ChainEvaluations.many), so seven models' 35
     folds cost three or four batched passes instead of about seventy single ones; each fit takes exactly the steps
     it would take alone. A fold's held-out prediction comes with its training evaluation."""
-    assign = fold_ids(meas.n_poses, folds)
+    assign = pose_folds(meas, folds)
     tests = [assign == k for k in range(folds)]
     runs, fits = [], []  # fits: per run, its model's free parameters and training rows
     for m in models:

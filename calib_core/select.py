@@ -32,7 +32,7 @@ import numpy as np
 
 from . import kinematics as K
 from .identify import (DISTINCT_DECIMALS, Calibration, ChainEvaluations, Folds, _calibrate, _select, assess,
-                       fold_ids, held_out, identify, prealign)
+                       held_out, identify, pose_folds, prealign)
 from .io import Measurements
 from .model import RobotModel
 
@@ -68,10 +68,11 @@ class GeometrySelection:
                 "candidates": [{k: v for k, v in row.items() if k != "free"} for row in self.table]}
 
 
-def _fold_stats(d: np.ndarray, folds: int, keep: np.ndarray | None = None) -> tuple[float, float]:
-    """Held-out RMS over the poses `keep` (default all) and the standard error of the per-fold RMS values."""
+def _fold_stats(d: np.ndarray, assign: np.ndarray, folds: int, keep: np.ndarray | None = None
+                ) -> tuple[float, float]:
+    """Held-out RMS over the poses `keep` (default all) and the standard error of the per-fold RMS values; assign:
+    the fold of every pose (identify.pose_folds)."""
     keep = np.ones(len(d), bool) if keep is None else keep
-    assign = fold_ids(len(d), folds)
     parts = [keep & (assign == k) for k in range(folds)]
     per = np.array([np.sqrt(np.mean(d[part] ** 2)) for part in parts if part.any()])
     return float(np.sqrt(np.mean(d[keep] ** 2))), float(per.std(ddof=1) / np.sqrt(len(per))) if len(per) > 1 else 0.0
@@ -165,7 +166,8 @@ def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None =
     keep = _not_outliers(list(cals.values()), meas.n_poses)
     for row in table:
         if row["label"] in cals:
-            row["holdout_rms_mm"], row["fold_se_mm"] = _fold_stats(cals[row["label"]].holdout_residual_mm, k, keep)
+            row["holdout_rms_mm"], row["fold_se_mm"] = _fold_stats(cals[row["label"]].holdout_residual_mm,
+                                                                   pose_folds(meas, k), k, keep)
     scored = [r for r in table if r["holdout_rms_mm"] is not None]
     best = min(scored, key=lambda r: r["holdout_rms_mm"])
     limit = best["holdout_rms_mm"] + best["fold_se_mm"]

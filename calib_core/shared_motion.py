@@ -22,6 +22,7 @@ from .identify import DISTINCT_DECIMALS
 from .io import Measurements
 from .kinematics import Chain, _cross
 from .model import RobotModel
+from .orientation import MARK
 
 MIN_POSES = 10
 """Poses with two or more targets needed before the test is made."""
@@ -30,7 +31,7 @@ AXES = "xyz"
 
 @dataclass(frozen=True)
 class SharedMotion:
-    motion: str  # the shared motion that fits best, in words: "T2 turning", "the base tilting about its x axis", ...
+    motion: str  # the motion, in words: "T2 turning", "the base tilting about its x axis", ...
     size: float  # its RMS per pose: rad (a rotation) or mm (a shift)
     unit: str  # "rad" or "mm"
     share: float  # fraction of a target's residual mean square it explains (0..1)
@@ -40,18 +41,18 @@ class SharedMotion:
     shared_joints: tuple[int, ...]  # moving model rows on the way to every target
 
 
-def pose_groups(meas: Measurements) -> list[np.ndarray]:
-    """Rows of every pose measured with several targets: the same setup and joint values (to DISTINCT_DECIMALS),
-    each target once (a pose visited again is another placement of the robot, not the same one)."""
+def pose_groups(meas: Measurements, model: RobotModel) -> list[np.ndarray]:
+    """Rows of every pose measured with several physical targets (Measurements.pose_index: the same setup and joint
+    values, each target once; a pose visited again is another placement of the robot, not the same one). The
+    virtual points of a 6-D reading (orientation.MARK) are one reading of one target, not targets of their own."""
     if meas.target is None:
         return []
-    setup = np.zeros(meas.n_poses, int) if meas.setup is None else meas.setup
-    key = np.c_[setup, np.round(meas.joints, DISTINCT_DECIMALS)]
-    _, inverse = np.unique(key, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    order = np.argsort(inverse, kind="stable")
-    groups = np.split(order, np.flatnonzero(np.diff(inverse[order])) + 1)
-    return [g for g in groups if len(g) > 1 and len(np.unique(meas.target[g])) == len(g)]
+    unit = meas.pose_index(DISTINCT_DECIMALS)
+    real = np.array([MARK not in name for name in model.target_names], bool)[meas.target]
+    order = np.argsort(unit, kind="stable")
+    order = order[real[order]]
+    groups = np.split(order, np.flatnonzero(np.diff(unit[order])) + 1)
+    return [g for g in groups if len(g) > 1]
 
 
 def shared_joints(model: RobotModel) -> tuple[int, ...]:
@@ -81,7 +82,7 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
     measured minus predicted; sigma (N,) the fit's 1-sigma per coordinate; Q (3N, r) an orthonormal basis of the
     fit's weighted Jacobian (rows pose-major). Every motion tried, largest share first; None when fewer than
     MIN_POSES poses have two targets."""
-    groups = pose_groups(meas)
+    groups = pose_groups(meas, chain.model)
     if len(groups) < MIN_POSES:
         return None
     a, b = np.array([g[:2] for g in groups]).T  # one pair per pose: the poses are the independent units
@@ -107,7 +108,8 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
         var = max(float(((u[a] * residual_mm[a]).sum(1) * (u[b] * residual_mm[b]).sum(1)).sum() / (ua2 * ub2).sum()),
                   0.0)  # var(delta), in the motion's unit squared
         moved = var * float(np.mean((u[rows] ** 2).sum(1)))
-        found.append(SharedMotion(motion=what, size=float(np.sqrt(var)), unit=unit, share=min(moved / ms, 1.0),
+        found.append(SharedMotion(motion=what, size=float(np.sqrt(var)), unit=unit,
+                                  share=min(moved / ms, 1.0) if ms > 0 else 0.0,
                                   rms_mm=float(np.sqrt(moved)), p_value=p, n_poses=len(groups),
                                   shared_joints=shared_joints(chain.model)))
     return sorted(found, key=lambda s: -s.share)

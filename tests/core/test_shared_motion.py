@@ -2,12 +2,14 @@
 both hands, with a motion drawn here upstream of where the arms part (a torso joint landing differently at each
 visit, or the base rocking about a pivot under it) or, for the null, the arms' own joints landing differently
 (independent between the hands). The motion is written in this file, not with the diagnosis's functions."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from calib_core import diagnose as DG
 from calib_core import kinematics as K
-from calib_core.identify import identify
+from calib_core.identify import fold_ids, identify, pose_folds
 from calib_core.io import Measurements
 from calib_core.model import parse_model
 from calib_core.shared_motion import pose_groups, shared_joints
@@ -90,12 +92,36 @@ def _found(tree, meas):
 def test_poses_group_the_targets_measured_together(tree):
     rng = np.random.default_rng(0)
     meas, *_ = _campaign(tree, rng, "none", 0.0)
-    groups = pose_groups(meas)
+    groups = pose_groups(meas, tree)
     assert len(groups) == N_POSES and all(sorted(meas.target[g]) == [0, 1] for g in groups)
     assert [tree.joint_names[j] for j in shared_joints(tree)] == ["T1", "T2", "T3", "T4"]
     one = meas.subset(np.flatnonzero(meas.target == 0))
-    assert pose_groups(one) == [] and DG._shared_motion(identify(tree, one, folds=0), one, one.noise_sigma_mm(),
+    assert pose_groups(one, tree) == [] and DG._shared_motion(identify(tree, one, folds=0), one, one.noise_sigma_mm(),
                                                        None) is None
+
+
+def test_the_targets_of_a_pose_are_one_unit_in_folds_and_paired_tests(tree, seed):
+    """Held-out folds keep the targets of a pose together, and a paired test counts them once: two targets that share
+    their pose's error are not two independent poses (a pose visited again, or a set of one target, is unchanged)."""
+    rng = np.random.default_rng(seed)
+    meas, *_ = _campaign(tree, rng, "none", 0.0)
+    assign = pose_folds(meas, 5)
+    assert (assign[0::2] == assign[1::2]).all()
+    one = meas.subset(np.flatnonzero(meas.target == 0))
+    assert (pose_folds(one, 5) == fold_ids(one.n_poses, 5)).all() and (one.pose_index() == np.arange(N_POSES)).all()
+    again = Measurements(joints=np.r_[one.joints, one.joints[:5]], points=np.r_[one.points, one.points[:5]],
+                         target=np.zeros(N_POSES + 5, int))
+    assert len(np.unique(again.pose_index())) == N_POSES + 5  # a revisit is another placement of the robot
+    drop = rng.normal(0.3, 1.0, N_POSES)  # per pose, shared by both of its targets
+
+    def stub(d2, index):
+        return SimpleNamespace(holdout_residual_mm=np.sqrt(d2), inliers=lambda: np.ones(len(d2), bool),
+                               pose_index=index)
+    base = 10.0 + np.abs(drop).max()
+    single = DG.holdout_gain(stub(np.full(N_POSES, base), None), stub(base - drop, None))
+    paired = DG.holdout_gain(stub(np.full(2 * N_POSES, base), meas.pose_index()),
+                             stub(np.repeat(base - drop, 2), meas.pose_index()))
+    assert paired[0] == pytest.approx(single[0], rel=1e-9), (seed, single, paired)
 
 
 @pytest.mark.parametrize("motion", ["torso", "base"])

@@ -204,6 +204,7 @@ def test_orientation_rows_sharpen_the_geometry(seed):
 
     from calib_core.orientation import with_orientation
     from calib_core.pipeline import calibrate
+    from calib_core.shared_motion import pose_groups
 
     doc = {"name": "arm3", "joints": [
         {"name": "J1", "a": 0, "alpha": 0, "d": 400, "theta": 0, "limits": [-170, 170]},
@@ -218,6 +219,8 @@ def test_orientation_rows_sharpen_the_geometry(seed):
     meas.orientation = np.c_[xyzw[:, 3], xyzw[:, :3]]
     m6, meas6 = with_orientation(model, meas)
     assert m6.n_targets == 4 and meas6.n_poses == 4 * 25
+    # one reading is one unit (folds, paired tests), and its virtual points are not targets that move together
+    assert len(np.unique(meas6.pose_index())) == 25 and pose_groups(meas6, m6) == []
     plain = calibrate(model, dataclasses.replace(meas, orientation=None))
     full = calibrate(model, meas)
     geo = lambda out: {p["name"]: p for p in out["parameters"] if p["name"][:2] in ("J1", "J2", "J3")}  # noqa: E731
