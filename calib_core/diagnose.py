@@ -1494,10 +1494,10 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
         correction = None
         fix = "no smooth correction helps on held-out poses, so the model is not extended"
     if any(f.get("family") == "shared_by_targets" for f in follows):
-        fix += ("; what the targets of a pose share and the joints do not predict is noise of each pose (the shared "
-                "joints landing a little differently at each visit, joint values commanded rather than measured, "
-                "the base moving): no model of the robot removes it, a reference target on the shared part "
-                "measured at every pose or measured joint positions would")
+        fix += ("; what the targets of a pose share and no correction of the joints predicts acts as noise of each "
+                "pose (the shared joints landing a little differently at each visit, joint values commanded rather "
+                "than measured, the base moving): a model of the robot cannot remove it, a reference target on the "
+                "shared part measured at every pose or measured joint positions would")
     return {"kind": "unexplained", "form": "unexplained", "joints": [], "correction": correction,
             "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
             "gain_pct": 100.0 * (hb - ha) / hb, "model_error_before_mm": mb, "model_error_after_mm": ma,

@@ -97,15 +97,15 @@ class Measurements:
         return len(self.setup_names)
 
     def pose_index(self, decimals: int = 9) -> np.ndarray:
-        """(N,) the independent unit of every row: rows measuring different targets at the same setup and joint
-        values (to `decimals`, rad / mm) are one pose of the robot and share the index of its first row; any other
-        row (one target, or a pose visited again) is its own. Held-out folds and paired tests count these units."""
+        """(N,) the independent unit of every row: rows measuring different targets at the same setup, payload and
+        joint values (to `decimals`, rad / mm) are one pose of the robot and share the index of its first row; any
+        other row (one target, or a pose visited again) is its own. Held-out folds and paired tests count these."""
         out = np.arange(self.n_poses)
         if self.target is None:
             return out
         setup = np.zeros(self.n_poses, int) if self.setup is None else self.setup
-        _, first, inverse = np.unique(np.c_[setup, np.round(self.joints, decimals)], axis=0, return_index=True,
-                                      return_inverse=True)
+        key = np.c_[setup, self.payload_kg(), np.round(self.joints, decimals)]
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
         inverse = inverse.ravel()
         rows = np.bincount(inverse)
         distinct = np.bincount(np.unique(np.c_[inverse, self.target], axis=0)[:, 0], minlength=len(rows))
