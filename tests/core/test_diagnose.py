@@ -301,11 +301,12 @@ def test_the_chance_of_so_few_runs_is_exact(seed):
 
 
 def _held_out(distances_mm, outliers=()):
-    """What holdout_gain reads of a calibration: its held-out distances and the poses it named as outliers."""
+    """What holdout_gain reads of a calibration: its held-out distances, the poses it named as outliers and the
+    independent unit of each row (None: one target, every row its own)."""
     d = np.asarray(distances_mm, float)
     keep = np.ones(len(d), bool)
     keep[np.asarray(outliers, int)] = False
-    return SimpleNamespace(holdout_residual_mm=d, inliers=lambda: keep)
+    return SimpleNamespace(holdout_residual_mm=d, inliers=lambda: keep, pose_index=None)
 
 
 def test_a_cause_that_brings_poses_back_from_the_outliers_gains_on_them(seed):
