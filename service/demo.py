@@ -379,13 +379,19 @@ def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None
     n_val = int(round(HOLDOUT_FRACTION * meas.n_poses))
     if meas.n_poses - n_val < 30 or n_val < 5:
         raise DemoError(f"{data} has {meas.n_poses} poses: too few to hold out {100 * HOLDOUT_FRACTION:.0f} %")
-    perm = np.random.default_rng(seed).permutation(meas.n_poses)
-    val_idx, cal_idx = np.sort(perm[:n_val]), np.sort(perm[n_val:])
+    # the targets measured at one pose go to the same side (they share the pose's errors); one target: row by row
+    _, unit = np.unique(meas.pose_index(), return_inverse=True)
+    n_units = int(unit.max()) + 1
+    n_val_units = int(round(HOLDOUT_FRACTION * n_units))
+    perm = np.random.default_rng(seed).permutation(n_units)
+    held = np.isin(unit.ravel(), perm[:n_val_units])
+    val_idx, cal_idx = np.flatnonzero(held), np.flatnonzero(~held)
     upload = "\n".join([lines[header]] + [lines[rows[i]] for i in cal_idx]) + "\n"
+    together = "" if n_units == meas.n_poses else f" rows, the targets of {n_val_units} poses together,"
     return Campaign(doc, model, upload, meas.subset(cal_idx), meas.subset(val_idx),
                     source=f"{data} ({meas.n_poses} measured poses) and the model {robot}",
-                    validation=f"{n_val} poses ({100 * HOLDOUT_FRACTION:.0f} %) held out at random (seed {seed}) "
-                               f"before the upload, never seen by the service",
+                    validation=f"{len(val_idx)}{together or ' poses'} ({100 * HOLDOUT_FRACTION:.0f} %) held out at "
+                               f"random (seed {seed}) before the upload, never seen by the service",
                     n_total=meas.n_poses)
 
 
