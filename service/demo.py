@@ -387,11 +387,13 @@ def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None
     held = np.isin(unit.ravel(), perm[:n_val_units])
     val_idx, cal_idx = np.flatnonzero(held), np.flatnonzero(~held)
     upload = "\n".join([lines[header]] + [lines[rows[i]] for i in cal_idx]) + "\n"
-    together = "" if n_units == meas.n_poses else f" rows, the targets of {n_val_units} poses together,"
+    share = f"{100 * HOLDOUT_FRACTION:.0f} %"
+    held_out = f"{len(val_idx)} poses ({share})" if n_units == meas.n_poses else \
+        f"{len(val_idx)} rows (the targets of {n_val_units} poses together, {share})"
     return Campaign(doc, model, upload, meas.subset(cal_idx), meas.subset(val_idx),
                     source=f"{data} ({meas.n_poses} measured poses) and the model {robot}",
-                    validation=f"{len(val_idx)}{together or ' poses'} ({100 * HOLDOUT_FRACTION:.0f} %) held out at "
-                               f"random (seed {seed}) before the upload, never seen by the service",
+                    validation=f"{held_out} held out at random (seed {seed}) before the upload, never seen by the "
+                               "service",
                     n_total=meas.n_poses)
 
 
