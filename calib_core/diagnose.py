@@ -356,7 +356,7 @@ def holdout_gain(before: Calibration, after: Calibration) -> tuple[float, float]
     d = before.holdout_residual_mm[keep] ** 2 - after.holdout_residual_mm[keep] ** 2
     drop = float(d.mean())
     if before.pose_index is not None:  # the targets of one pose are one unit: they share its errors (shared_motion)
-        d = np.bincount(np.unique(before.pose_index[keep], return_inverse=True)[1].ravel(), d)
+        d = np.bincount(before.pose_index[keep], d)[np.unique(before.pose_index[keep])]
     sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
     if sd <= 0.0:
         return (0.0 if drop > 0 else 1.0), drop

@@ -54,7 +54,6 @@ class CalibratedRobot:
     effect_values: tuple[np.ndarray, ...] = ()
     x_basis: np.ndarray | None = None  # the geometry the effect bases were fitted on (default: x)
     setup_names: tuple[str, ...] = ("",)  # one base pose per setup, in this order
-    pose_index: np.ndarray | None = None  # (N,) the independent unit of each row (Measurements.pose_index)
 
     def effect_offsets(self, joints: np.ndarray, columns: Measurements | None = None):
         """Joint offsets (N, n) and displacements (N, 3) mm of the identified effects at these joints, with
@@ -532,12 +531,8 @@ def fold_ids(n_poses: int, folds: int) -> np.ndarray:
 def pose_folds(meas: Measurements, folds: int) -> np.ndarray:
     """Fold of every row: fold_ids over the independent units (Measurements.pose_index), so the targets measured
     at one pose are held out together; the rows' own fold_ids when every row is its own unit (one target)."""
-    if meas.target is None:
-        return fold_ids(meas.n_poses, folds)
-    _, unit = np.unique(meas.pose_index(DISTINCT_DECIMALS), return_inverse=True)
-    if unit.max() + 1 == meas.n_poses:
-        return fold_ids(meas.n_poses, folds)
-    return fold_ids(int(unit.max()) + 1, folds)[unit.ravel()]
+    unit = meas.pose_index(DISTINCT_DECIMALS)
+    return fold_ids(int(unit.max()) + 1 if len(unit) else 0, folds)[unit]
 
 
 def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases=None,

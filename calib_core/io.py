@@ -97,9 +97,10 @@ class Measurements:
         return len(self.setup_names)
 
     def pose_index(self, decimals: int = 9) -> np.ndarray:
-        """(N,) the independent unit of every row: rows measuring different targets at the same setup, payload and
-        joint values (to `decimals`, rad / mm) are one pose of the robot and share the index of its first row; any
-        other row (one target, or a pose visited again) is its own. Held-out folds and paired tests count these."""
+        """(N,) the independent unit of every row, numbered 0, 1, ... in the order of their first rows: rows measuring
+        different targets at the same setup, payload and joint values (to `decimals`, rad / mm) are one pose of the
+        robot; any other row (one target, or a pose visited again) is its own (so with one target, 0..N-1 in row
+        order). Held-out folds and paired tests count these units."""
         out = np.arange(self.n_poses)
         if self.target is None:
             return out
@@ -110,7 +111,7 @@ class Measurements:
         rows = np.bincount(inverse)
         distinct = np.bincount(np.unique(np.c_[inverse, self.target], axis=0)[:, 0], minlength=len(rows))
         together = (rows > 1) & (distinct == rows)  # each target once: one placement of the robot
-        return np.where(together[inverse], first[inverse], out)
+        return np.unique(np.where(together[inverse], first[inverse], out), return_inverse=True)[1].ravel()
 
     def subset(self, idx) -> "Measurements":
         """The poses at integer or boolean index idx."""

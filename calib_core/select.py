@@ -164,10 +164,11 @@ def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None =
         for (cal, _), d in zip(cvs, held_out(model, meas, shared.x0, shared.evals, [cv for _, cv in cvs], k)):
             cal.holdout_residual_mm = d
     keep = _not_outliers(list(cals.values()), meas.n_poses)
+    assign = pose_folds(meas, k)
     for row in table:
         if row["label"] in cals:
-            row["holdout_rms_mm"], row["fold_se_mm"] = _fold_stats(cals[row["label"]].holdout_residual_mm,
-                                                                   pose_folds(meas, k), k, keep)
+            row["holdout_rms_mm"], row["fold_se_mm"] = _fold_stats(cals[row["label"]].holdout_residual_mm, assign,
+                                                                   k, keep)
     scored = [r for r in table if r["holdout_rms_mm"] is not None]
     best = min(scored, key=lambda r: r["holdout_rms_mm"])
     limit = best["holdout_rms_mm"] + best["fold_se_mm"]

@@ -380,11 +380,11 @@ def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None
     if meas.n_poses - n_val < 30 or n_val < 5:
         raise DemoError(f"{data} has {meas.n_poses} poses: too few to hold out {100 * HOLDOUT_FRACTION:.0f} %")
     # the targets measured at one pose go to the same side (they share the pose's errors); one target: row by row
-    _, unit = np.unique(meas.pose_index(), return_inverse=True)
+    unit = meas.pose_index()
     n_units = int(unit.max()) + 1
     n_val_units = int(round(HOLDOUT_FRACTION * n_units))
     perm = np.random.default_rng(seed).permutation(n_units)
-    held = np.isin(unit.ravel(), perm[:n_val_units])
+    held = np.isin(unit, perm[:n_val_units])
     val_idx, cal_idx = np.flatnonzero(held), np.flatnonzero(~held)
     upload = "\n".join([lines[header]] + [lines[rows[i]] for i in cal_idx]) + "\n"
     share = f"{100 * HOLDOUT_FRACTION:.0f} %"
