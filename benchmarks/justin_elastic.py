@@ -83,8 +83,8 @@ def probes(cal, meas, train: np.ndarray) -> list[tuple[str, float, float]]:
             c = np.linalg.lstsq(A[rows], y[rows], rcond=1e-10)[0]
             held.append(_mean_mm((y - A @ c).reshape(-1, 3)[~train]))
         out.append((label, *held))
-    W = _shared_as_noise(cal, meas, train)
-    fits = [np.linalg.lstsq(W(J)[rows], W(y[:, None])[rows, 0], rcond=1e-10)[0] for W in (lambda A: A, W)]
+    weigh = _shared_as_noise(cal, meas, train)
+    fits = [np.linalg.lstsq(w(J)[rows], w(y[:, None])[rows, 0], rcond=1e-10)[0] for w in (lambda A: A, weigh)]
     out.append(("the hands' shared motion weighted as noise of each pose (GLS)",
                 *[_mean_mm((y - J @ c).reshape(-1, 3)[~train]) for c in fits]))
     return out
@@ -99,8 +99,9 @@ def _shared_as_noise(cal, meas, train: np.ndarray):
     res = meas.points - chain.p - dp
     rows = np.flatnonzero(train)
     sub = meas.subset(rows)
-    top = SM.shared_motion(cal.robot.chain(sub.joints, sub)[0], sub, res[rows], sub.noise_sigma_mm(),
-                           np.zeros((3 * len(rows), 0)))[0]
+    found = SM.shared_motion(cal.robot.chain(sub.joints, sub)[0], sub, res[rows], sub.noise_sigma_mm(),
+                             np.zeros((3 * len(rows), 0)))
+    top = next((f for f in found if f.p_value < 0.01), found[0])  # the largest significant
     u = {what: v for what, _, v in SM.motions(chain)}[top.motion]
     s2 = float(np.mean(np.sum(res[rows] ** 2, axis=1))) * (1 - top.share) / 3
     pairs = np.array([g[:2] for g in SM.pose_groups(meas, cal.model)])
