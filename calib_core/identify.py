@@ -22,7 +22,7 @@ from scipy.optimize import brentq
 from . import kinematics as K
 from .effects import Context, Effect, apply, effect_from_state, effect_state
 from .identifiability import Identifiability, analyse, assess  # noqa: F401 (analyse: public re-export)
-from .io import Measurements
+from .io import DISTINCT_DECIMALS, Measurements
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, RobotModel
 from .solve import Solution, least_squares, lm_steps, solve_together
 
@@ -35,8 +35,6 @@ nominal (whose last steps overshoot the 1e-10 test by far), so that it lands as 
 PRIOR_STD_MM = 100.0
 PRIOR_STD_RAD = 0.1
 """Default Tikhonov prior toward nominal: weak, it only steadies a poorly excited pose set."""
-DISTINCT_DECIMALS = 9
-"""Joint vectors equal after rounding to this many decimals (rad / mm) are the same configuration."""
 UNCERTAINTY_NOTE = ("std are 1-sigma of the estimates conditional on the identified model being the right one "
                     "(geometry plus the listed effects, noise weighted by the instrument's model and the fitted model "
                     "error); they do not cover errors of a structure the model lacks. null = not determined by "
@@ -507,7 +505,7 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
                       point_ids=list(meas.point_ids), effects=tuple(effects), sigma_mm=sigma,
                       model_error_mm=s_model, sigma0_measurement=sigma0_measurement, prior_scale=prior_scale,
                       x_basis=x_ref if effects else None, noise_model=meas.noise_source(),
-                      setup_names=meas.setup_names, pose_index=meas.pose_index(DISTINCT_DECIMALS))
+                      setup_names=meas.setup_names, pose_index=meas.pose_index())
     if folds > 1 and meas.n_poses >= 2 * folds:
         fold_bases = None
         if refold is not None:
@@ -531,7 +529,7 @@ def fold_ids(n_poses: int, folds: int) -> np.ndarray:
 def pose_folds(meas: Measurements, folds: int) -> np.ndarray:
     """Fold of every row: fold_ids over the independent units (Measurements.pose_index), so the targets measured
     at one pose are held out together; the rows' own fold_ids when every row is its own unit (one target)."""
-    unit = meas.pose_index(DISTINCT_DECIMALS)
+    unit = meas.pose_index()
     return fold_ids(int(unit.max()) + 1 if len(unit) else 0, folds)[unit]
 
 

@@ -36,6 +36,10 @@ COUPLING_TOL = 1e-3
 """A coupled joint's CSV value may differ from its coupling by this much (model joint units: rounding)."""
 
 
+DISTINCT_DECIMALS = 9
+"""Joint vectors equal after rounding to this many decimals (rad / mm) are the same configuration."""
+
+
 class MeasurementError(ValueError):
     """A CSV that cannot be used; `errors` lists problems as {row, column, value, message}."""
 
@@ -96,16 +100,16 @@ class Measurements:
     def n_setups(self) -> int:
         return len(self.setup_names)
 
-    def pose_index(self, decimals: int = 9) -> np.ndarray:
+    def pose_index(self) -> np.ndarray:
         """(N,) the independent unit of every row, numbered 0, 1, ... in the order of their first rows: rows measuring
-        different targets at the same setup, payload and joint values (to `decimals`, rad / mm) are one pose of the
+        different targets at the same setup, payload and joint values (to DISTINCT_DECIMALS) are one pose of the
         robot; any other row (one target, or a pose visited again) is its own (so with one target, 0..N-1 in row
         order). Held-out folds and paired tests count these units."""
         out = np.arange(self.n_poses)
         if self.target is None:
             return out
         setup = np.zeros(self.n_poses, int) if self.setup is None else self.setup
-        key = np.c_[setup, self.payload_kg(), np.round(self.joints, decimals)]
+        key = np.c_[setup, self.payload_kg(), np.round(self.joints, DISTINCT_DECIMALS)]
         _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
         inverse = inverse.ravel()
         rows = np.bincount(inverse)

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from .identify import DISTINCT_DECIMALS
 from .io import Measurements
 from .kinematics import Chain, _cross
 from .model import RobotModel
@@ -47,7 +46,7 @@ def pose_groups(meas: Measurements, model: RobotModel) -> list[np.ndarray]:
     virtual points of a 6-D reading (orientation.MARK) are one reading of one target, not targets of their own."""
     if meas.target is None:
         return []
-    unit = meas.pose_index(DISTINCT_DECIMALS)
+    unit = meas.pose_index()
     real = np.array([MARK not in name for name in model.target_names], bool)[meas.target]
     order = np.argsort(unit, kind="stable")
     order = order[real[order]]
@@ -91,7 +90,7 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
     rows = np.concatenate(groups)
     dof = w.size / max(w.size - Q.shape[1], 1)  # a fitted residual is smaller than the error by the fit's dof
     ms = dof * float(np.mean(np.sum(residual_mm[rows] ** 2, axis=1)))
-    found = []
+    found, upstream = [], shared_joints(chain.model)
     cand = motions(chain)
     for what, unit, u in cand:
         uw = u / sigma[:, None]
@@ -111,7 +110,7 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
         found.append(SharedMotion(motion=what, size=float(np.sqrt(var)), unit=unit,
                                   share=min(moved / ms, 1.0) if ms > 0 else 0.0,
                                   rms_mm=float(np.sqrt(moved)), p_value=p, n_poses=len(groups),
-                                  shared_joints=shared_joints(chain.model)))
+                                  shared_joints=upstream))
     return sorted(found, key=lambda s: -s.share)
 
 
