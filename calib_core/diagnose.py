@@ -26,7 +26,7 @@ from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance
                       has_loads, loads)
 from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJointCompliance, _as_tuple,
                               body_parameters, carried_columns, gravity_regressor, lateral_axes, load_mix_for,
-                              mass_step, payload_load)
+                              mass_step, payload_load, tilted)
 from .effects.joint_effects import LOAD_DOUBT
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
@@ -1117,7 +1117,7 @@ def _cause(e: Effect):
     poses); any other cause is itself on the model's mass data."""
     if isinstance(e, (Backlash, JointCompliance, LoadCompliance)) and len(e.joints) == 1:
         return e.kind, e.joints
-    return dataclasses.replace(e, masses=()) if getattr(e, "masses", ()) else e
+    return dataclasses.replace(e, masses=(), gravity=()) if getattr(e, "masses", ()) or getattr(e, "gravity", ()) else e
 
 
 @dataclass
@@ -1384,7 +1384,9 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
 MASS_STEPS = 8
 """At most this many Gauss-Newton steps of the mass data under the compliances found (each a joint fit of both)."""
 MASS_TOL = 0.01
-"""The steps stop when no body's mass moves by more than this share of the mean body mass."""
+"""The steps stop when no body's mass moves by more than this share of the mean body mass..."""
+TILT_TOL_RAD = 1e-4
+"""...and gravity's direction by less than this."""
 
 
 def _mass_driven(e: Effect) -> bool:
@@ -1398,34 +1400,41 @@ MASS_NOTE = "the mass data were identified from the data under the compliances f
 
 def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[dict], model: RobotModel,
                      meas: Measurements, fit: _Fitter, notes: list[str]) -> Calibration:
-    """Identify the bodies' masses and first moments shared by every compliance found (deflection = compliance x
-    load(mass) is bilinear: Gauss-Newton steps, each fitting the compliances with a mass-data step beside them, the
-    step's prior 50 % of each model mass), from the masses a cause already carries (a second search may add a
-    cause on the model's), else the model's; kept only on 1 % held-out evidence. Mass data 15 % off, or guessed
-    (an elastic humanoid), otherwise leave a load-shaped error behind."""
+    """Identify the bodies' masses and first moments shared by every compliance found, and the direction of gravity
+    in the base frame (deflection = compliance x load(mass, gravity) is bilinear: Gauss-Newton steps, each fitting
+    the compliances with a mass-data step beside them, the step's prior 50 % of each model mass and 0.05 rad of
+    tilt), from the mass data a cause already carries (a second search may add a cause on the model's), else the
+    model's; kept only on 1 % held-out evidence. Mass data 15 % off, or guessed (an elastic humanoid), or a base
+    frame that is not level, otherwise leave a load-shaped error behind."""
     idx = [i for i, e in enumerate(chosen) if _mass_driven(e)]
     if not idx or not model.has_mass or meas.tau is not None:
         return current
     phi_model = body_parameters(model)
-    carried = next((chosen[i].masses for i in idx if chosen[i].masses), None)
-    phi = phi_model.copy() if carried is None else np.asarray(carried, float)
+    carried = next((chosen[i] for i in idx if chosen[i].masses), None)
+    phi = phi_model.copy() if carried is None else np.asarray(carried.masses, float)
+    g = np.asarray(carried.gravity if carried is not None and carried.gravity else model.gravity, float)
     effects, t = list(chosen), current
-    if carried is not None and any(chosen[i].masses != carried for i in idx):  # one set of mass data for all
-        effects = [dataclasses.replace(e, masses=carried) if i in idx else e for i, e in enumerate(chosen)]
+    if carried is not None and any((chosen[i].masses, chosen[i].gravity) != (carried.masses, carried.gravity)
+                                   for i in idx):  # one set of mass data for all
+        effects = [dataclasses.replace(e, masses=carried.masses, gravity=carried.gravity) if i in idx else e
+                   for i, e in enumerate(chosen)]
         t = fit(effects, current.x, folds=0)
     for _ in range(MASS_STEPS):
         values = t.effect_values  # the compliances where the step linearises (fitted at the last masses)
-        step = mass_step([(effects[i], values[i]) for i in idx], model)
+        step = mass_step([(effects[i], values[i]) for i in idx], model, g)
         try:
             t = fit(effects + [step], t.x, folds=0)
         except ValueError:
             return current
-        delta = t.effect_values[-1].reshape(-1, 4)
+        delta, tilt = t.effect_values[-1][:-2].reshape(-1, 4), t.effect_values[-1][-2:]
         phi[list(step.bodies)] += delta
         phi[:, 0] = np.maximum(phi[:, 0], 0.0)
+        g = tilted(g, tilt)
         masses = tuple(tuple(float(v) for v in row) for row in phi)
-        effects = [dataclasses.replace(e, masses=masses) if i in idx else e for i, e in enumerate(chosen)]
-        if np.abs(delta[:, 0]).max() < MASS_TOL * phi_model[list(step.bodies), 0].mean():
+        effects = [dataclasses.replace(e, masses=masses, gravity=tuple(float(v) for v in g)) if i in idx else e
+                   for i, e in enumerate(chosen)]
+        if np.abs(delta[:, 0]).max() < MASS_TOL * phi_model[list(step.bodies), 0].mean() and \
+                np.abs(tilt).max() < TILT_TOL_RAD:
             break
     trial = fit(effects, t.x)
     p_gain, drop = holdout_gain(current, trial)
@@ -1442,9 +1451,13 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
     moved = [k for k in np.flatnonzero(phi_model[:, 0] > 0)
              if abs(phi[k, 0] - phi_model[k, 0]) > 0.1 * phi_model[k, 0]]
     shown = ", ".join(f"{model.joint_names[k]} {phi[k, 0]:.3g} kg (model {phi_model[k, 0]:.3g})" for k in moved[:8])
+    g0 = np.asarray(model.gravity, float)
+    off_mrad = 1e3 * float(np.arccos(np.clip(g @ g0 / (np.linalg.norm(g) * np.linalg.norm(g0)), -1.0, 1.0)))
     notes[:] = [n for n in notes if not n.startswith(MASS_NOTE)]  # a second identification replaces the first
     notes.append(f"{MASS_NOTE} (held-out {hb:.3f} -> {ha:.3f} mm, paired {_p(p_gain)}): "
-                 + (shown or "no mass moved by more than 10 %") + "; the compliances' std are conditional on these masses")
+                 + (shown or "no mass moved by more than 10 %")
+                 + f"; gravity {off_mrad:.1f} mrad off the model's base z (the base frame the geometry defines is not "
+                 "exactly level); the compliances' std are conditional on these masses and this gravity")
     return trial
 
 

@@ -10,9 +10,11 @@ import numpy as np
 from .kinematics import Chain, _cross
 
 
-def gravity_world(chain: Chain) -> np.ndarray:
-    """Gravity m/s^2 in the measurement frame: (3,), or (N, 3) per pose when the poses span several setups."""
-    return chain.Rb @ chain.model.gravity
+def gravity_world(chain: Chain, g: np.ndarray | None = None) -> np.ndarray:
+    """Gravity m/s^2 in the measurement frame: (3,), or (N, 3) per pose when the poses span several setups. `g` (3,)
+    m/s^2 in the robot base frame replaces the model's (a direction identified from the data: the base frame the
+    geometry defines is seldom exactly level)."""
+    return chain.Rb @ (chain.model.gravity if g is None else np.asarray(g, float))
 
 
 def com_world(chain: Chain) -> np.ndarray:
@@ -40,10 +42,11 @@ def distal_loads(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = 
     return (D @ m)[:, None] + pay, np.einsum("jk,kna->jna", D, first) + pay[..., None] * chain.p[None]
 
 
-def gravity_moments(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None) -> np.ndarray:
+def gravity_moments(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None,
+                    g: np.ndarray | None = None) -> np.ndarray:
     """Moment (n, N, 3) N*m of the gravity of everything row j carries about row j's axis point (o_theta): its
-    part along the axis loads a revolute joint, the part across it bends the bearing."""
-    return _moments(chain, *distal_loads(chain, payload_kg, _mass_data(chain, phi)))
+    part along the axis loads a revolute joint, the part across it bends the bearing. `g`: see gravity_world."""
+    return _moments(chain, *distal_loads(chain, payload_kg, _mass_data(chain, phi)), g)
 
 
 def _mass_data(chain: Chain, phi: np.ndarray | None) -> np.ndarray | None:
@@ -53,20 +56,21 @@ def _mass_data(chain: Chain, phi: np.ndarray | None) -> np.ndarray | None:
     return phi
 
 
-def _moments(chain: Chain, M: np.ndarray, S: np.ndarray) -> np.ndarray:
+def _moments(chain: Chain, M: np.ndarray, S: np.ndarray, g: np.ndarray | None = None) -> np.ndarray:
     """(n, N, 3) N*m: the carried mass M at its centre S / M, about each row's axis point."""
-    return _cross(S - M[..., None] * chain.o_theta, np.broadcast_to(gravity_world(chain), S.shape)) / 1000.0
+    return _cross(S - M[..., None] * chain.o_theta, np.broadcast_to(gravity_world(chain, g), S.shape)) / 1000.0
 
 
-def joint_loads(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None) -> np.ndarray:
+def joint_loads(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None,
+                g: np.ndarray | None = None) -> np.ndarray:
     """Gravity torque about each revolute axis (N*m) or force along each prismatic axis (N), shape (N, n), from
-    the model's mass data or `phi` (see distal_loads).
+    the model's mass data or `phi` (see distal_loads), under the model's gravity or `g` (see gravity_world).
 
     Sign convention: the load a positive joint motion works against is negative.
     """
     M, S = distal_loads(chain, payload_kg, _mass_data(chain, phi))
-    torque = np.einsum("jna,jna->jn", _moments(chain, M, S), chain.z_axis)
-    force = M * (chain.z_axis * gravity_world(chain)).sum(-1)
+    torque = np.einsum("jna,jna->jn", _moments(chain, M, S, g), chain.z_axis)
+    force = M * (chain.z_axis * gravity_world(chain, g)).sum(-1)
     return np.where(chain.model.prismatic[:, None], force, torque).T
 
 

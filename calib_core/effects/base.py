@@ -38,12 +38,13 @@ def has_loads(model: RobotModel, meas: Measurements) -> bool:
     return model.has_mass or meas.tau is not None
 
 
-def loads(chain: Chain, meas: Measurements, phi: np.ndarray | None = None) -> np.ndarray:
+def loads(chain: Chain, meas: Measurements, phi: np.ndarray | None = None, g: np.ndarray | None = None) -> np.ndarray:
     """(N, n) N*m or N.  A measured joint torque tau (tau_<joint>, what the joint applies to hold the arm) is the
     gravity load's opposite, so the load is -tau; joints without a measured torque take the statics of the model's
-    mass data or of `phi` (identified ones, see statics.distal_loads); zero when there are none."""
+    mass data or of `phi` (identified ones, see statics.distal_loads), under the model's gravity or `g` (identified,
+    see statics.gravity_world); zero when there are none."""
     model = chain.model
-    out = (joint_loads(chain, meas.payload_kg(), phi) if model.has_mass or phi is not None
+    out = (joint_loads(chain, meas.payload_kg(), phi, g) if model.has_mass or phi is not None
            else np.zeros((chain.N, model.n_joints)))
     if meas.tau is not None:
         given = ~np.isnan(meas.tau)

@@ -12,7 +12,7 @@ geometry cannot absorb are kept (`load_mix`), so the plug-in stays linear in its
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -30,11 +30,12 @@ MAX_LATERAL_TERMS = 3
 """The same for each bending moment across a joint (two per joint)."""
 
 
-def gravity_regressor(chain, j: int, axis: np.ndarray | None = None) -> np.ndarray:
+def gravity_regressor(chain, j: int, axis: np.ndarray | None = None, g: np.ndarray | None = None) -> np.ndarray:
     """Y_j (N, m): the gravity load on joint j per unit mass (column 4k) and first moment (4k+1..3) of
     every body k that joint j carries (k >= j in a serial chain); N*m per kg and per kg*mm (revolute), N per kg (prismatic). With `axis` (N, 3), the
-    moment about that axis through the joint instead (a bending moment, for lateral compliance)."""
-    g = gravity_world(chain)
+    moment about that axis through the joint instead (a bending moment, for lateral compliance). `g` (3,) m/s^2 in
+    the base frame: an identified gravity instead of the model's."""
+    g = gravity_world(chain, g)
     carried = chain.model.descendants(j)
     z, o = (chain.z_axis[j] if axis is None else axis), chain.o_theta[j]
     if chain.model.prismatic[j] and axis is None:
@@ -234,6 +235,7 @@ class LateralJointCompliance(Effect):
     kind = "link_deflection"
     needs = "mass"
     masses: tuple = ()
+    gravity: tuple = ()  # (3,) m/s^2 in the base frame identified with the masses, else the model's
 
     def parameter_names(self, model):
         return [f"{model.joint_names[j]}.lateral_compliance_{a}" for j in self.joints for a in "xy"]
@@ -247,7 +249,7 @@ class LateralJointCompliance(Effect):
     def _moments(self, ctx: Context) -> np.ndarray:
         """(n, N, 3) N*m: the gravity moment about each joint's axis point."""
         masses = np.asarray(self.masses, float) if self.masses else None
-        return gravity_moments(ctx.chain, ctx.meas.payload_kg(), masses)
+        return gravity_moments(ctx.chain, ctx.meas.payload_kg(), masses, np.asarray(self.gravity) if self.gravity else None)
 
     def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """Each joint's tilt (rad) at each pose: the two lateral compliances times the moments across them."""
@@ -278,35 +280,66 @@ MASS_PRIOR_SHARE = 0.5
 """Prior std of an identified body mass as a share of the model's (at least this share of the mean body mass)."""
 MASS_PRIOR_LEVER_MM = 200.0
 """Prior std of a body's first moment: its mass prior times this lever (mm)."""
+GRAVITY_TILT_PRIOR_RAD = 0.05
+"""Prior std (rad) of the tilt of gravity against the model's base frame. The base frame a calibration fits is
+defined by the first axis and the tracker, not by a level: in the independent world it sits 15-20 mrad off level,
+which turns a pitch joint's large torque partly into a bending moment across it."""
+
+
+def tilt_axes(g: np.ndarray) -> np.ndarray:
+    """(2, 3): two unit axes across gravity g (base frame) about which its direction can tilt."""
+    u = np.asarray(g, float) / np.linalg.norm(g)
+    e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(u, e1)])
+
+
+def tilted(g, tilt) -> np.ndarray:
+    """Gravity g (3,) m/s^2 turned by the tilts (2,) rad about tilt_axes(g)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(tilt, float) @ tilt_axes(g)).apply(np.asarray(g, float))
+
+
+def _zeros_if_none(a: np.ndarray | None, shape: tuple) -> np.ndarray:
+    return np.zeros(shape) if a is None else a
+
+
+TILT_STEP_RAD = 1e-6
+"""Finite-difference step of the gravity tilt columns (the deflections are linear in gravity: exact up to rounding)."""
 
 
 @dataclass(frozen=True)
 class MassStep(Effect):
     """One Gauss-Newton step of the mass data under fixed compliances (never a reported cause): the
     displacement of `causes` (joint and lateral compliances, fitted values `values`) per unit change of each
-    body's mass and first moment. Deflection = compliance x load(mass) is bilinear; fitting this beside the
-    causes themselves is the step."""
+    body's mass and first moment, and of the two tilts of gravity (its direction in the base frame,
+    `gravity`). Deflection = compliance x load(mass, gravity) is bilinear; fitting this beside the causes
+    themselves is the step."""
 
     kind = "mass_data"
     bodies: tuple = ()
     causes: tuple = ()  # (effect, values) pairs
     prior: tuple = ()
+    gravity: tuple = ()  # (3,) m/s^2 in the base frame where the step linearises
 
     @property
     def prior_std(self) -> np.ndarray:
         return np.asarray(self.prior, float)
 
     def parameter_names(self, model):
-        return [f"{model.joint_names[k]}.{p}" for k in self.bodies for p in ("mass", "first_x", "first_y", "first_z")]
+        return ([f"{model.joint_names[k]}.{p}" for k in self.bodies for p in ("mass", "first_x", "first_y", "first_z")]
+                + ["gravity.tilt_1", "gravity.tilt_2"])
 
     def parameter_units(self, model):
-        return ["kg", "kg*mm", "kg*mm", "kg*mm"] * len(self.bodies)
+        return ["kg", "kg*mm", "kg*mm", "kg*mm"] * len(self.bodies) + ["rad", "rad"]
 
     def basis(self, ctx: Context) -> Basis:
         ch, model = ctx.chain, ctx.model
         N, n = ctx.meas.joints.shape
         P = 4 * len(self.bodies)
-        bq, bp = np.zeros((N, n, P)), np.zeros((N, 3, P))
+        bq, bp = np.zeros((N, n, P + 2)), np.zeros((N, 3, P + 2))
+        g = np.asarray(self.gravity, float)
         for effect, values in self.causes:
             v = np.asarray(values, float)
             for t, j in enumerate(effect.joints):
@@ -315,9 +348,17 @@ class MassStep(Effect):
                     lever = (ch.p - ch.o_theta[j]) * ch.on_path[j][:, None]
                     for a, axis in enumerate(lateral_axes(ch, j)):
                         swing = _cross(axis, lever) * v[2 * t + a]
-                        bp[:, :, dst] += swing[:, :, None] * gravity_regressor(ch, j, axis)[:, None, src]
+                        bp[:, :, dst] += swing[:, :, None] * gravity_regressor(ch, j, axis, g)[:, None, src]
                 elif not model.prismatic[j]:  # a linear axis' force changes with the carried mass only: left to the fit
-                    bq[:, j, dst] += v[t] * gravity_regressor(ch, j)[:, src]
+                    bq[:, j, dst] += v[t] * gravity_regressor(ch, j, None, g)[:, src]
+            here = effect.basis(ctx)
+            here_q, here_p = _zeros_if_none(here.joint, (N, n, len(v))), _zeros_if_none(here.cart, (N, 3, len(v)))
+            size = np.sqrt((here_q**2).sum((0, 1)) + (here_p**2).sum((0, 1)))
+            v = np.where(size > 1e-9 * size.max(), v, 0.0)  # a load of rounding (a vertical axis) fits no compliance
+            for i in range(2):
+                turned = replace(effect, gravity=tuple(tilted(g, TILT_STEP_RAD * np.eye(2)[i]))).basis(ctx)
+                bq[:, :, P + i] += (_zeros_if_none(turned.joint, here_q.shape) - here_q) @ v / TILT_STEP_RAD
+                bp[:, :, P + i] += (_zeros_if_none(turned.cart, here_p.shape) - here_p) @ v / TILT_STEP_RAD
         return Basis(bq, bp, np.zeros(N), "mass data")
 
     def _columns(self, model, j: int) -> tuple[np.ndarray, np.ndarray]:
@@ -332,8 +373,9 @@ class MassStep(Effect):
         return "the mass data differ from the model's"
 
 
-def mass_step(causes, model) -> MassStep:
-    """The Gauss-Newton step of the mass data of every body with mass under the fitted `causes`."""
+def mass_step(causes, model, gravity) -> MassStep:
+    """The Gauss-Newton step of the mass data of every body with mass, and of gravity's direction (`gravity` (3,)
+    m/s^2 in the base frame, where the step linearises), under the fitted `causes`."""
     phi = body_parameters(model)
     bodies = tuple(int(k) for k in np.flatnonzero(phi[:, 0] > 0))
     floor = MASS_PRIOR_SHARE * phi[list(bodies), 0].mean() if bodies else 0.0
@@ -341,4 +383,6 @@ def mass_step(causes, model) -> MassStep:
     for k in bodies:
         m = max(MASS_PRIOR_SHARE * phi[k, 0], floor)
         prior += [m] + [m * MASS_PRIOR_LEVER_MM] * 3
-    return MassStep((), bodies=bodies, causes=tuple(causes), prior=tuple(prior))
+    prior += [GRAVITY_TILT_PRIOR_RAD] * 2
+    return MassStep((), bodies=bodies, causes=tuple(causes), prior=tuple(prior),
+                    gravity=tuple(float(v) for v in gravity))

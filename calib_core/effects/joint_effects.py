@@ -57,6 +57,7 @@ class JointCompliance(Effect):
     masses: tuple = ()  # (n, 4) mass data identified from the data (kg, kg*mm), else the model's (gravity.py)
     load_coef: tuple = ()
     fitted_softness: bool = False  # load_coef came from a play whose softness was fitted (see Backlash)
+    gravity: tuple = ()  # (3,) m/s^2 in the base frame identified with the masses, else the model's
 
     def parameter_names(self, model):
         what = "deflection_at_largest_load" if self.load_coef else "compliance"
@@ -75,7 +76,9 @@ class JointCompliance(Effect):
             load = np.zeros((N, n))
             load[:, j] = identified_load(ctx, j, self.load_coef)
         else:
-            load = ctx.loads if not self.masses else loads(ctx.chain, ctx.meas, np.asarray(self.masses, float))
+            load = ctx.loads if not (self.masses or self.gravity) else loads(
+                ctx.chain, ctx.meas, np.asarray(self.masses, float) if self.masses else None,
+                np.asarray(self.gravity, float) if self.gravity else None)
         unit = 1.0 if self.load_coef else self.load_scale  # the parameter is a deflection, or a compliance
         for i, k in enumerate(self.joints):
             b[:, k, i] = hardening(load[:, k] / self.load_scale, self.stiffening) * unit
