@@ -1419,6 +1419,7 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
         effects = [dataclasses.replace(e, masses=carried.masses, gravity=carried.gravity) if i in idx else e
                    for i, e in enumerate(chosen)]
         t = fit(effects, current.x, folds=0)
+    best = None  # (misfit, effects, x) of the mass data whose refit leaves the least on the calibration poses
     for _ in range(MASS_STEPS):
         values = t.effect_values  # the compliances where the step linearises (fitted at the last masses)
         step = mass_step([(effects[i], values[i]) for i in idx], model, g)
@@ -1433,10 +1434,16 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
         masses = tuple(tuple(float(v) for v in row) for row in phi)
         effects = [dataclasses.replace(e, masses=masses, gravity=tuple(float(v) for v in g)) if i in idx else e
                    for i, e in enumerate(chosen)]
+        refit = fit(effects, t.x, folds=0)
+        misfit = float(np.sum(refit.solution.weights[:, None] * refit.solution.residual**2))
+        if best is None or misfit < best[0]:
+            best = (misfit, effects, refit.x)
         if np.abs(delta[:, 0]).max() < MASS_TOL * phi_model[list(step.bodies), 0].mean() and \
                 np.abs(tilt).max() < TILT_TOL_RAD:
             break
-    trial = fit(effects, t.x)
+    _, effects, x = best  # a tilt that trades with the first moments can swing from step to step (Agile Justin)
+    phi, g = np.asarray(effects[idx[0]].masses, float), np.asarray(effects[idx[0]].gravity, float)
+    trial = fit(effects, x)
     p_gain, drop = holdout_gain(current, trial)
     if not (p_gain < REFINE_ALPHA and drop > 0):
         return current
