@@ -1117,7 +1117,8 @@ def _cause(e: Effect):
     poses); any other cause is itself on the model's mass data."""
     if isinstance(e, (Backlash, JointCompliance, LoadCompliance)) and len(e.joints) == 1:
         return e.kind, e.joints
-    return dataclasses.replace(e, masses=(), gravity=()) if getattr(e, "masses", ()) or getattr(e, "gravity", ()) else e
+    identified = getattr(e, "masses", ()) or getattr(e, "gravity", ())
+    return dataclasses.replace(e, masses=(), gravity=()) if identified else e
 
 
 @dataclass

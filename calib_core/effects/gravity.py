@@ -249,7 +249,8 @@ class LateralJointCompliance(Effect):
     def _moments(self, ctx: Context) -> np.ndarray:
         """(n, N, 3) N*m: the gravity moment about each joint's axis point."""
         masses = np.asarray(self.masses, float) if self.masses else None
-        return gravity_moments(ctx.chain, ctx.meas.payload_kg(), masses, np.asarray(self.gravity) if self.gravity else None)
+        gravity = np.asarray(self.gravity, float) if self.gravity else None
+        return gravity_moments(ctx.chain, ctx.meas.payload_kg(), masses, gravity)
 
     def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """Each joint's tilt (rad) at each pose: the two lateral compliances times the moments across them."""
@@ -282,8 +283,8 @@ MASS_PRIOR_LEVER_MM = 200.0
 """Prior std of a body's first moment: its mass prior times this lever (mm)."""
 GRAVITY_TILT_PRIOR_RAD = 0.05
 """Prior std (rad) of the tilt of gravity against the model's base frame. The base frame a calibration fits is
-defined by the first axis and the tracker, not by a level: in the independent world it sits 15-20 mrad off level,
-which turns a pitch joint's large torque partly into a bending moment across it."""
+defined by the first axis and the tracker, not by a level: in the independent world it sits up to 16 mrad off level
+(RESULTS 3.8), which turns a pitch joint's large torque partly into a bending moment across it."""
 
 
 def tilt_axes(g: np.ndarray) -> np.ndarray:

@@ -56,6 +56,23 @@ def test_every_bearing_at_once_is_a_candidate_when_the_model_has_masses():
     assert not any(isinstance(e, LateralJointCompliance) for e in candidates(bare, meas)[0])
 
 
+def _elastic_world(seed, rng, **identified):
+    """The tree's joint and lateral compliances (drawn, rad/(N*m)) deflecting under `identified` (masses, gravity)
+    instead of the model's: 200 measured poses (10 um noise), the fitter on them, the model's compliances fitted
+    beside the geometry, and the error (mm RMS) of a calibration against the truth on 100 fresh poses."""
+    effects = (JointCompliance(MOVING, **identified), LateralJointCompliance(MOVING, **identified))
+    values = (rng.uniform(0.5, 2.0, len(MOVING)) * 1e-5, rng.uniform(0.5, 2.0, 2 * len(MOVING)) * 1e-5)
+    meas, x, R0, _ = _poses(seed, 200)
+    world = CalibratedRobot(TREE, x, R0, effects, values, x, ("",))
+    truth = world.predict(meas.joints, meas)
+    meas = dataclasses.replace(meas, points=truth + rng.normal(0, 0.01, truth.shape), sigma=np.full(200, 0.01))
+    fresh, *_ = _poses(seed + 1, 100)
+    fresh_truth = world.predict(fresh.joints, fresh)
+    fit = DG._Fitter(TREE, meas, None, 5, None, 1.0)
+    err = lambda cal: np.sqrt(np.mean(np.sum((cal.predict(fresh.joints, fresh) - fresh_truth) ** 2, 1)))  # noqa: E731
+    return meas, fit, [JointCompliance(MOVING), LateralJointCompliance(MOVING)], err
+
+
 def test_mass_data_are_identified_under_the_compliances(seed):
     """Deflections made with mass data 0.6-1.6x the model's: fitting the compliances on the model's masses leaves
     a load-shaped error; the mass steps remove most of it on fresh poses and say so in a note."""
@@ -63,24 +80,12 @@ def test_mass_data_are_identified_under_the_compliances(seed):
     phi = body_parameters(TREE)
     true = phi * rng.uniform(0.6, 1.6, len(phi))[:, None]
     true[:, 1:] += rng.normal(0, 20.0, (len(phi), 3)) * true[:, :1]  # centres of mass 20 mm off
-    masses = tuple(map(tuple, true))
-    effects = (JointCompliance(MOVING, masses=masses), LateralJointCompliance(MOVING, masses=masses))
-    values = (rng.uniform(0.5, 2.0, len(MOVING)) * 1e-5, rng.uniform(0.5, 2.0, 2 * len(MOVING)) * 1e-5)  # rad/(N*m)
-    meas, x, R0, _ = _poses(seed, 200)
-    world = CalibratedRobot(TREE, x, R0, effects, values, x, ("",))
-    truth = world.predict(meas.joints, meas)
-    meas = dataclasses.replace(meas, points=truth + rng.normal(0, 0.01, truth.shape), sigma=np.full(200, 0.01))
-    fresh, *_ = _poses(seed + 1, 100)
-    fresh_truth = world.predict(fresh.joints, fresh)
-
-    fit = DG._Fitter(TREE, meas, None, 5, None, 1.0)
-    chosen = [JointCompliance(MOVING), LateralJointCompliance(MOVING)]
+    meas, fit, chosen, err = _elastic_world(seed, rng, masses=tuple(map(tuple, true)))
     before = fit(chosen)
     findings = [{"form": e.label(TREE), "kind": e.kind, "joints": []} for e in chosen]
     notes = []
     after = DG._identify_masses(before, chosen, findings, TREE, meas, fit, notes)
 
-    err = lambda cal: np.sqrt(np.mean(np.sum((cal.predict(fresh.joints, fresh) - fresh_truth) ** 2, 1)))  # noqa: E731
     assert err(after) < 0.5 * err(before), (err(before), err(after))
     assert all(e.masses for e in chosen), chosen
     assert any("mass data were identified" in n for n in notes), notes
@@ -97,18 +102,8 @@ def test_gravity_direction_is_identified_with_the_mass_data(seed):
     rng = np.random.default_rng((seed, 7))
     tilt = rng.uniform(0.010, 0.030) * np.array([np.cos(a := rng.uniform(0, 2 * np.pi)), np.sin(a)])
     g_true = tilted(TREE.gravity, tilt)
-    masses = tuple(map(tuple, body_parameters(TREE)))
-    effects = tuple(e(MOVING, masses=masses, gravity=tuple(g_true)) for e in (JointCompliance, LateralJointCompliance))
-    values = (rng.uniform(0.5, 2.0, len(MOVING)) * 1e-5, rng.uniform(0.5, 2.0, 2 * len(MOVING)) * 1e-5)  # rad/(N*m)
-    meas, x, R0, _ = _poses(seed, 200)
-    world = CalibratedRobot(TREE, x, R0, effects, values, x, ("",))
-    truth = world.predict(meas.joints, meas)
-    meas = dataclasses.replace(meas, points=truth + rng.normal(0, 0.01, truth.shape), sigma=np.full(200, 0.01))
-    fresh, *_ = _poses(seed + 1, 100)
-    fresh_truth = world.predict(fresh.joints, fresh)
-
-    fit = DG._Fitter(TREE, meas, None, 5, None, 1.0)
-    chosen = [JointCompliance(MOVING), LateralJointCompliance(MOVING)]
+    meas, fit, chosen, err = _elastic_world(seed, rng, masses=tuple(map(tuple, body_parameters(TREE))),
+                                            gravity=tuple(g_true))
     before = fit(chosen)
     notes = []
     after = DG._identify_masses(before, chosen, [], TREE, meas, fit, notes)
@@ -116,7 +111,6 @@ def test_gravity_direction_is_identified_with_the_mass_data(seed):
     angle = lambda a, b: float(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))  # noqa: E731
     found = np.asarray(chosen[1].gravity)
     assert found.shape == (3,) and angle(found, g_true) < angle(TREE.gravity, g_true) / 3, (found, g_true, seed)
-    err = lambda cal: np.sqrt(np.mean(np.sum((cal.predict(fresh.joints, fresh) - fresh_truth) ** 2, 1)))  # noqa: E731
     assert err(after) < 0.5 * err(before), (err(before), err(after))
     assert any("mrad off the model's base z" in n for n in notes), notes
 
