@@ -1460,7 +1460,8 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
              if abs(phi[k, 0] - phi_model[k, 0]) > 0.1 * phi_model[k, 0]]
     shown = ", ".join(f"{model.joint_names[k]} {phi[k, 0]:.3g} kg (model {phi_model[k, 0]:.3g})" for k in moved[:8])
     g0 = np.asarray(model.gravity, float)
-    off_mrad = 1e3 * float(np.arccos(np.clip(g @ g0 / (np.linalg.norm(g) * np.linalg.norm(g0)), -1.0, 1.0)))
+    norms = float(np.linalg.norm(g) * np.linalg.norm(g0))
+    off_mrad = 1e3 * float(np.arccos(np.clip(g @ g0 / norms, -1.0, 1.0))) if norms > 0 else 0.0
     notes[:] = [n for n in notes if not n.startswith(MASS_NOTE)]  # a second identification replaces the first
     notes.append(f"{MASS_NOTE} (held-out {hb:.3f} -> {ha:.3f} mm, paired {_p(p_gain)}): "
                  + (shown or "no mass moved by more than 10 %")

@@ -288,7 +288,9 @@ defined by the first axis and the tracker, not by a level: in the independent wo
 
 
 def tilt_axes(g: np.ndarray) -> np.ndarray:
-    """(2, 3): two unit axes across gravity g (base frame) about which its direction can tilt."""
+    """(2, 3): two unit axes across gravity g (base frame) about which its direction can tilt (zero without gravity)."""
+    if not np.linalg.norm(g) > 0:
+        return np.zeros((2, 3))
     u = np.asarray(g, float) / np.linalg.norm(g)
     e1 = np.cross(u, np.eye(3)[int(np.argmin(np.abs(u)))])
     e1 /= np.linalg.norm(e1)
