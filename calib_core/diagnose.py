@@ -31,7 +31,7 @@ from .effects.joint_effects import LOAD_DOUBT
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import at_gap, probes, session_clock, step_candidates
-from .identify import Calibration, effect_bases, identify
+from .identify import Calibration, effect_bases, identify, widened_cov
 from . import shared_motion
 from .select import select_geometry
 from .solve import OUTLIER_U
@@ -1364,6 +1364,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             floor, basis = new_floor, "residual"
         structure_left = _excess(current, floor) < alpha  # current or floor has changed
     _with_switch_doubt(current, meas)
+    _with_mass_doubt(current, fit, model)
     _judge_sizes(current, findings, meas)
     current.unmodelled_mm = _unmodelled_mm(current, floor, structure_left)
     if loss == "huber" and first is not None:
@@ -1397,6 +1398,23 @@ def _mass_driven(e: Effect) -> bool:
 
 
 MASS_NOTE = "the mass data were identified from the data under the compliances found"
+
+
+def _with_mass_doubt(cal: Calibration, fit: _Fitter, model: RobotModel) -> None:
+    """Give `cal` the doubt of the mass data its compliances carry (identified from these poses): one more mass step
+    fitted beside the model, whose joint covariance the prediction std propagates (uncertainty.prediction_cov).
+    Without it the std are conditional on the masses, and too small where the masses matter (the world's elastic
+    bearings: prediction z 1.3-1.7)."""
+    idx = [i for i, e in enumerate(cal.effects) if _mass_driven(e) and e.masses]
+    if not idx:
+        return
+    lead = cal.effects[idx[0]]
+    step = mass_step([(cal.effects[i], cal.effect_values[i]) for i in idx], model,
+                     np.asarray(lead.gravity if lead.gravity else model.gravity, float))
+    try:
+        cal.mass_doubt = (step, widened_cov(cal, fit.meas, [step], fit.loss))
+    except (ValueError, np.linalg.LinAlgError):
+        return
 
 
 def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[dict], model: RobotModel,

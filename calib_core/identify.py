@@ -129,6 +129,7 @@ class Calibration:
     unmodelled_mm: float = 0.0  # per-axis std of held-out structure no cause in the model explains (diagnose sets it)
     setup_names: tuple[str, ...] = ("",)  # one base pose per setup, in this order
     pose_index: np.ndarray | None = None  # (N,) the independent unit of each row (Measurements.pose_index)
+    mass_doubt: tuple = ()  # (MassStep, covariance over [x[free], effect parameters, its step]): see uncertainty.py
 
     @property
     def warnings(self) -> list[str]:
@@ -628,6 +629,19 @@ def held_out(model, meas, x0, evals: ChainEvaluations, models: list[Folds], fold
             d[test] = np.linalg.norm(y[test] - p[test], axis=1)
         out.append(d)
     return out
+
+
+def widened_cov(cal: Calibration, meas: Measurements, extra: list[Effect], loss: str | None) -> np.ndarray:
+    """Covariance over [x[free], effect parameters, the parameters of `extra`] of `cal`'s fit on `meas` with the
+    `extra` effects freed beside it: the same weights, prior and variance factor. The calibration's doubt when
+    something fixed in its model (mass data identified from these same poses) was estimated too."""
+    effects = list(cal.effects) + list(extra)
+    bases = effect_bases(cal.model, meas, effects, cal.x if cal.x_basis is None else cal.x_basis, cal.R0)
+    x0, _ = prealign(cal.model, meas)
+    start = np.r_[cal.solution.x, np.zeros(bases[0].shape[2] + len(cal.free) - len(cal.solution.x))]
+    sol = _fit(cal.model, meas, cal.sigma_mm, x0, cal.R0, cal.free, loss, True, bases,
+               _effect_prior(cal.model, effects), start=start, prior_scale=cal.prior_scale)
+    return sol.cov * (cal.solution.s2 / sol.s2)
 
 
 def evaluate(cal: Calibration | CalibratedRobot, meas: Measurements) -> dict:

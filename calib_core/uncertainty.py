@@ -10,7 +10,9 @@ Like the parameter std, this is conditional on the identified model being the ri
 parameters' estimation error moves the prediction (see identify.UNCERTAINTY_NOTE). When the diagnosis leaves
 held-out structure significantly above the noise floor that no cause in the model explains, that de-noised model
 error (`Calibration.unmodelled_mm`, per axis) is added in quadrature: a prediction cannot be surer than the part
-of the robot the model does not describe. A step in time found by the diagnosis lies somewhere between two measured
+of the robot the model does not describe. Mass data the diagnosis identified are fixed in the model, but they were
+estimated from the same poses: their doubt is propagated through one more Gauss-Newton step of them
+(`Calibration.mass_doubt`: the step's columns beside the model's and the joint covariance of that fit). A step in time found by the diagnosis lies somewhere between two measured
 poses, and a gear play's switch somewhere near where its load changes sign: a pose there carries what the other side
 would cost with its chance of being there. Directions the data and the prior leave undetermined carry no variance in
 `solution.cov` (see solve.py): a prediction along them is not covered.
@@ -27,27 +29,34 @@ from .identify import Calibration, _columns, effect_bases
 from .io import Measurements
 
 
-def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
-    """d predicted point / d [x[free], effect parameters] at the poses, (N, 3, p) with p = len(cal.solution.x)."""
+def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None = None, extra=()) -> np.ndarray:
+    """d predicted point / d [x[free], effect parameters] at the poses, (N, 3, p) with p = len(cal.solution.x), then
+    the columns of the `extra` effects (not in the prediction, such as a mass-data step)."""
     q = np.atleast_2d(np.asarray(joints, float))
     model = cal.model
     labels = None if columns is None else columns.labels
-    if not cal.effects:
+    if not cal.effects and not extra:
         return K.Chain(model, cal.x, q, cal.R0, labels).jacobian()[:, :, cal.free]
     meas = _columns(q, columns)
-    Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects), cal.x if cal.x_basis is None else cal.x_basis,
-                                cal.R0)
+    Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects) + list(extra),
+                                cal.x if cal.x_basis is None else cal.x_basis, cal.R0)
     theta = cal.solution.x[len(cal.free):]
-    chain = K.Chain(model, cal.x, q + Phi_q @ theta, cal.R0, labels)
+    k = len(theta)
+    chain = K.Chain(model, cal.x, q + Phi_q[:, :, :k] @ theta, cal.R0, labels)
     J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
     return np.concatenate([chain.jacobian()[:, :, cal.free], J_eff], axis=2)
 
 
 def prediction_cov(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:
-    """Covariance (N, 3, 3) mm^2 of the predicted point at each pose: the parameters' covariance propagated, plus
-    the unmodelled part the diagnosis measured, plus the poses that may be on the other side of a switch."""
-    G = prediction_jacobian(cal, joints, columns)
-    C = cal.solution.cov
+    """Covariance (N, 3, 3) mm^2 of the predicted point at each pose: the parameters' covariance propagated (with
+    the identified mass data's doubt where the diagnosis identified them), plus the unmodelled part the diagnosis
+    measured, plus the poses that may be on the other side of a switch."""
+    G, C = prediction_jacobian(cal, joints, columns), cal.solution.cov
+    if cal.mass_doubt:
+        step, C_step = cal.mass_doubt
+        G_step = prediction_jacobian(cal, joints, columns, extra=(step,))
+        if C_step.shape[0] == G_step.shape[2]:
+            G, C = G_step, C_step
     out = np.einsum("nip,pq,njq->nij", G, C, G)
     return 0.5 * (out + np.swapaxes(out, 1, 2)) + cal.unmodelled_mm**2 * np.eye(3) + _misplaced(cal, joints, columns)
 

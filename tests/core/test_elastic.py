@@ -12,6 +12,7 @@ from calib_core.identify import CalibratedRobot, prealign
 from calib_core.model import parse_model
 from calib_core.statics import distal_loads, gravity_moments, gravity_world, joint_loads
 from calib_core.twin import Twin
+from calib_core.uncertainty import prediction_std_mm
 
 from .test_tree import torso_two_arms
 
@@ -90,6 +91,14 @@ def test_mass_data_are_identified_under_the_compliances(seed):
     assert all(e.masses for e in chosen), chosen
     assert any("mass data were identified" in n for n in notes), notes
     assert all("identified masses" in f["form"] for f in findings), findings
+
+    # the masses came from these poses: their doubt widens the prediction std, never narrows it
+    fresh, *_ = _poses(seed + 1, 100)
+    sure = prediction_std_mm(after, fresh.joints, fresh)
+    DG._with_mass_doubt(after, fit, TREE)
+    assert after.mass_doubt, "identified masses carry their doubt"
+    doubted = prediction_std_mm(after, fresh.joints, fresh)
+    assert (doubted >= 0.98 * sure).all() and doubted.mean() > 1.05 * sure.mean(), (sure.mean(), doubted.mean())
 
 
 def test_gravity_direction_is_identified_with_the_mass_data(seed):
