@@ -12,9 +12,9 @@ held-out structure significantly above the noise floor that no cause in the mode
 error (`Calibration.unmodelled_mm`, per axis) is added in quadrature: a prediction cannot be surer than the part
 of the robot the model does not describe. Mass data the diagnosis identified are fixed in the model, but they were
 estimated from the same poses: their doubt is propagated through one more Gauss-Newton step of them
-(`Calibration.mass_doubt`: the step's columns beside the model's and the joint covariance of that fit). A step in time found by the diagnosis lies somewhere between two measured
-poses, and a gear play's switch somewhere near where its load changes sign: a pose there carries what the other side
-would cost with its chance of being there. Directions the data and the prior leave undetermined carry no variance in
+(`Calibration.mass_doubt`: the step's columns beside the model's and the joint covariance of that fit). A step in
+time found by the diagnosis lies somewhere between two measured poses, and a gear play's switch somewhere near where
+its load changes sign: a pose there carries what the other side would cost with its chance of being there. Directions the data and the prior leave undetermined carry no variance in
 `solution.cov` (see solve.py): a prediction along them is not covered.
 """
 from __future__ import annotations
@@ -51,12 +51,12 @@ def prediction_cov(cal: Calibration, joints, columns: Measurements | None = None
     """Covariance (N, 3, 3) mm^2 of the predicted point at each pose: the parameters' covariance propagated (with
     the identified mass data's doubt where the diagnosis identified them), plus the unmodelled part the diagnosis
     measured, plus the poses that may be on the other side of a switch."""
-    G, C = prediction_jacobian(cal, joints, columns), cal.solution.cov
-    if cal.mass_doubt:
-        step, C_step = cal.mass_doubt
-        G_step = prediction_jacobian(cal, joints, columns, extra=(step,))
-        if C_step.shape[0] == G_step.shape[2]:
-            G, C = G_step, C_step
+    extra = cal.mass_doubt[:1]
+    G = prediction_jacobian(cal, joints, columns, extra)
+    if extra and cal.mass_doubt[1].shape[0] == G.shape[2]:
+        C = cal.mass_doubt[1]
+    else:
+        G, C = G[:, :, :len(cal.solution.x)], cal.solution.cov
     out = np.einsum("nip,pq,njq->nij", G, C, G)
     return 0.5 * (out + np.swapaxes(out, 1, 2)) + cal.unmodelled_mm**2 * np.eye(3) + _misplaced(cal, joints, columns)
 
