@@ -14,8 +14,9 @@ of the robot the model does not describe. Mass data the diagnosis identified are
 estimated from the same poses: their doubt is propagated through one more Gauss-Newton step of them
 (`Calibration.mass_doubt`: the step's columns beside the model's and the joint covariance of that fit). A step in
 time found by the diagnosis lies somewhere between two measured poses, and a gear play's switch somewhere near where
-its load changes sign: a pose there carries what the other side would cost with its chance of being there. Directions the data and the prior leave undetermined carry no variance in
-`solution.cov` (see solve.py): a prediction along them is not covered.
+its load changes sign: a pose there carries what the other side would cost with its chance of being there.
+Directions the data and the prior leave undetermined carry no variance in `solution.cov` (see solve.py): a
+prediction along them is not covered.
 """
 from __future__ import annotations
 
