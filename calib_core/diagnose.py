@@ -1400,6 +1400,11 @@ def _mass_driven(e: Effect) -> bool:
 MASS_NOTE = "the mass data were identified from the data under the compliances found"
 
 
+def _gravity(e: Effect | None, model: RobotModel) -> np.ndarray:
+    """Gravity (3,) m/s^2 in the base frame under which `e` deflects: the direction it carries, else the model's."""
+    return np.asarray(e.gravity if e is not None and e.gravity else model.gravity, float)
+
+
 def _with_mass_doubt(cal: Calibration, fit: _Fitter, model: RobotModel) -> None:
     """Give `cal` the doubt of the mass data its compliances carry (identified from these poses): one more mass step
     fitted beside the model, whose joint covariance the prediction std propagates (uncertainty.prediction_cov).
@@ -1408,9 +1413,7 @@ def _with_mass_doubt(cal: Calibration, fit: _Fitter, model: RobotModel) -> None:
     idx = [i for i, e in enumerate(cal.effects) if _mass_driven(e) and e.masses]
     if not idx:
         return
-    lead = cal.effects[idx[0]]
-    step = mass_step([(cal.effects[i], cal.effect_values[i]) for i in idx], model,
-                     np.asarray(lead.gravity if lead.gravity else model.gravity, float))
+    step = mass_step([(cal.effects[i], cal.effect_values[i]) for i in idx], model, _gravity(cal.effects[idx[0]], model))
     try:
         cal.mass_doubt = (step, widened_cov(cal, fit.meas, [step], fit.loss))
     except (ValueError, np.linalg.LinAlgError):
@@ -1431,7 +1434,7 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
     phi_model = body_parameters(model)
     carried = next((chosen[i] for i in idx if chosen[i].masses), None)
     phi = phi_model.copy() if carried is None else np.asarray(carried.masses, float)
-    g = np.asarray(carried.gravity if carried is not None and carried.gravity else model.gravity, float)
+    g = _gravity(carried, model)
     effects, t = list(chosen), current
     if carried is not None and any((chosen[i].masses, chosen[i].gravity) != (carried.masses, carried.gravity)
                                    for i in idx):  # one set of mass data for all
@@ -1461,7 +1464,7 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
                 np.abs(tilt).max() < TILT_TOL_RAD:
             break
     _, effects, x = best  # a tilt that trades with the first moments can swing from step to step (Agile Justin)
-    phi, g = np.asarray(effects[idx[0]].masses, float), np.asarray(effects[idx[0]].gravity, float)
+    phi, g = np.asarray(effects[idx[0]].masses, float), _gravity(effects[idx[0]], model)
     trial = fit(effects, x)
     p_gain, drop = holdout_gain(current, trial)
     if not (p_gain < REFINE_ALPHA and drop > 0):

@@ -308,14 +308,13 @@ def _split(theta: np.ndarray, effects, model) -> list[np.ndarray]:
 
 def effect_bases(model, meas, effects, x, R0) -> tuple[np.ndarray, np.ndarray]:
     """Stacked bases of the effects at the poses: Phi_q (N, n, K) and Phi_p (N, 3, K)."""
-    N, n = meas.joints.shape
+    n = meas.joints.shape[1]
     ctx = Context(model, K.Chain(model, x, meas.joints, R0, meas.labels), meas)
     bq, bp = [], []
     for e in effects:
-        b = e.basis(ctx)
-        k = len(e.parameter_names(model))
-        bq.append(b.joint if b.joint is not None else np.zeros((N, n, k)))
-        bp.append(b.cart if b.cart is not None else np.zeros((N, 3, k)))
+        q, p = e.basis(ctx).dense(n, len(e.parameter_names(model)))
+        bq.append(q)
+        bp.append(p)
     return np.concatenate(bq, axis=2), np.concatenate(bp, axis=2)
 
 

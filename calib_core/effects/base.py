@@ -79,6 +79,12 @@ class Basis:
     regressor: np.ndarray  # (N,) the per-pose quantity the effect follows (for evidence and plots)
     regressor_label: str
 
+    def dense(self, n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(joint (N, n, k), cart (N, 3, k)): a part the effect does not have is zeros."""
+        N = len(next(a for a in (self.joint, self.cart, self.regressor) if a is not None))
+        return (np.zeros((N, n, k)) if self.joint is None else self.joint,
+                np.zeros((N, 3, k)) if self.cart is None else self.cart)
+
 
 @dataclass(frozen=True)
 class Effect:

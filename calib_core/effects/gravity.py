@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..kinematics import _cross
 from ..statics import gravity_moments, gravity_world
@@ -299,13 +300,7 @@ def tilt_axes(g: np.ndarray) -> np.ndarray:
 
 def tilted(g, tilt) -> np.ndarray:
     """Gravity g (3,) m/s^2 turned by the tilts (2,) rad about tilt_axes(g)."""
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_rotvec(np.asarray(tilt, float) @ tilt_axes(g)).apply(np.asarray(g, float))
-
-
-def _zeros_if_none(a: np.ndarray | None, shape: tuple) -> np.ndarray:
-    return np.zeros(shape) if a is None else a
 
 
 TILT_STEP_RAD = 1e-6
@@ -354,14 +349,14 @@ class MassStep(Effect):
                         bp[:, :, dst] += swing[:, :, None] * gravity_regressor(ch, j, axis, g)[:, None, src]
                 elif not model.prismatic[j]:  # a linear axis' force changes with the carried mass only: left to the fit
                     bq[:, j, dst] += v[t] * gravity_regressor(ch, j, None, g)[:, src]
-            here = effect.basis(ctx)
-            here_q, here_p = _zeros_if_none(here.joint, (N, n, len(v))), _zeros_if_none(here.cart, (N, 3, len(v)))
+            here_q, here_p = effect.basis(ctx).dense(n, len(v))
             size = np.sqrt((here_q**2).sum((0, 1)) + (here_p**2).sum((0, 1)))
             v = np.where(size > 1e-9 * size.max(), v, 0.0)  # a load of rounding (a vertical axis) fits no compliance
             for i in range(2):
-                turned = replace(effect, gravity=tuple(tilted(g, TILT_STEP_RAD * np.eye(2)[i]))).basis(ctx)
-                bq[:, :, P + i] += (_zeros_if_none(turned.joint, here_q.shape) - here_q) @ v / TILT_STEP_RAD
-                bp[:, :, P + i] += (_zeros_if_none(turned.cart, here_p.shape) - here_p) @ v / TILT_STEP_RAD
+                turned_q, turned_p = replace(effect, gravity=tuple(tilted(g, TILT_STEP_RAD * np.eye(2)[i]))
+                                             ).basis(ctx).dense(n, len(v))
+                bq[:, :, P + i] += (turned_q - here_q) @ v / TILT_STEP_RAD
+                bp[:, :, P + i] += (turned_p - here_p) @ v / TILT_STEP_RAD
         return Basis(bq, bp, np.zeros(N), "mass data")
 
     def _columns(self, model, j: int) -> tuple[np.ndarray, np.ndarray]:
