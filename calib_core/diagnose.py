@@ -1487,7 +1487,8 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
     notes.append(f"{MASS_NOTE} (held-out {hb:.3f} -> {ha:.3f} mm, paired {_p(p_gain)}): "
                  + (shown or "no mass moved by more than 10 %")
                  + f"; gravity {off_mrad:.1f} mrad off the model's base z (the base frame the geometry defines is not "
-                 "exactly level); the compliances' std are conditional on these masses and this gravity")
+                 "exactly level); the compliances' std are conditional on these masses and this gravity (the "
+                 "prediction std carry their doubt)")
     return trial
 
 
