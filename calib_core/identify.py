@@ -399,10 +399,11 @@ def _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior=None, K_e
 
 
 def _effect_prior(model, effects) -> np.ndarray | None:
-    """Ridge prior std per effect parameter (inf = none); only smoothing fields carry one."""
+    """Ridge prior std per effect parameter (inf = none): Effect.prior_stds."""
     if not effects:
         return None
-    return np.concatenate([np.full(len(e.parameter_names(model)), getattr(e, "prior_std", np.inf)) for e in effects])
+    return np.concatenate([np.broadcast_to(np.asarray(e.prior_stds(model), float), (len(e.parameter_names(model)),))
+                           for e in effects])
 
 
 def prealign(model: RobotModel, meas: Measurements) -> tuple[np.ndarray, np.ndarray]:

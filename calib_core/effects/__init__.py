@@ -34,7 +34,8 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
     moving = [j for j in range(n) if np.ptp(meas.joints[:, j]) > 1e-3]  # rad or mm: a joint that moves
     if has_loads(model, meas):
         # a joint's load can vary even where the joint stands still; a vertical axis carries none
-        load = loads(Chain(model, nominal_vector(model, n_setups=meas.n_setups), meas.joints, None, meas.labels), meas)
+        chain = Chain(model, nominal_vector(model, n_setups=meas.n_setups), meas.joints, None, meas.labels)
+        load = loads(chain, meas)
         span = np.ptp(load, axis=0)
         loaded = [j for j in range(n) if span[j] > 1e-6 * max(span.max(), 1e-300) and model.moving[j]]
         out += [JointCompliance((j,)) for j in loaded]
@@ -47,7 +48,7 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
             # every bearing tilting under its bending moment at once (vertical axes carry one too)
             bent = [j for j in range(n) if model.moving[j] and model.mass[model.descendants(j)].sum() > 0]
             if len(bent) > 1:
-                out.append(LateralJointCompliance(tuple(bent)))
+                out.append(LateralJointCompliance.for_data(tuple(bent), Context(model, chain, meas)))
         else:
             notes.append("the model has no masses: a link's bending needs mass data and is not tested; the joints' "
                          "lateral compliance (link_deflection) is tested with the load identified from the data, the "

@@ -105,6 +105,11 @@ class Effect:
     def parameter_units(self, model: RobotModel) -> list[str]:
         raise NotImplementedError
 
+    def prior_stds(self, model: RobotModel) -> np.ndarray | float:
+        """Ridge prior std of the parameters toward zero, in their units (inf: none): `prior_std` where the effect
+        carries one."""
+        return getattr(self, "prior_std", np.inf)
+
     def basis(self, ctx: Context) -> Basis:
         raise NotImplementedError
 

@@ -29,6 +29,11 @@ LOAD_PRIOR_RAD = 0.005
 grow without bound and blow up away from the calibration poses (a payload compliance keeps it too)."""
 MAX_LATERAL_TERMS = 3
 """The same for each bending moment across a joint (two per joint)."""
+TILT_PRIOR_RAD = 0.005
+"""Ridge prior (rad) on the RMS tilt each lateral compliance of every joint gives over the calibration poses, under
+the model's mass data. Without it the three bearings of a spherical shoulder tilt against each other at tens of
+degrees (Agile Justin: up to 26 deg) and the fit spends its freedom on poses it saw. The same size as
+LOAD_PRIOR_RAD; Justin's calibration folds prefer it to 0.01 and 0.02 rad (RESULTS 3.9)."""
 
 
 def gravity_regressor(chain, j: int, axis: np.ndarray | None = None, g: np.ndarray | None = None) -> np.ndarray:
@@ -237,6 +242,20 @@ class LateralJointCompliance(Effect):
     needs = "mass"
     masses: tuple = ()
     gravity: tuple = ()  # (3,) m/s^2 in the base frame identified with the masses, else the model's
+    prior: tuple = ()  # ridge prior std per compliance, rad/(N*m) (for_data); none when empty
+
+    @classmethod
+    def for_data(cls, joints: tuple, ctx: Context) -> "LateralJointCompliance":
+        """The compliances with a ridge prior of TILT_PRIOR_RAD on the RMS tilt each gives on these poses."""
+        e = cls(tuple(joints))
+        moment = e._moments(ctx)
+        rms = [np.sqrt(np.mean((moment[j] * axis).sum(-1) ** 2))
+               for j in e.joints for axis in lateral_axes(ctx.chain, j)]
+        return replace(e, prior=tuple(float(TILT_PRIOR_RAD / max(r, 1e-12)) for r in rms))
+
+    @property
+    def prior_std(self) -> np.ndarray | float:
+        return np.asarray(self.prior, float) if self.prior else np.inf
 
     def parameter_names(self, model):
         return [f"{model.joint_names[j]}.lateral_compliance_{a}" for j in self.joints for a in "xy"]

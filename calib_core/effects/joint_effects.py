@@ -11,6 +11,13 @@ from ..model import RobotModel
 from .base import Basis, Context, Effect, joint_basis, loads
 
 
+PLAY_PRIOR_RAD = 0.01
+"""Ridge prior std (rad) of a gear play: a real play is arcminutes, a worn gear's a few tenths of a degree. Without
+it a play whose switch a held-out fold classifies differently (an identified load) can grow to degrees there and
+its held-out poses land centimetres off, which misleads every held-out comparison after it (Agile Justin: folds
+up to 107 mm off, RESULTS 3.9)."""
+PLAY_PRIOR_MM = 1.0
+"""The same for a prismatic joint (mm; 100 mm per rad, as diagnose's plausible sizes)."""
 LOAD_DOUBT = (lambda x, w: (x, w / w.sum()))(*hermegauss(40))
 """Gauss-Hermite nodes and weights of a standard normal: expectations over a load's doubt."""
 
@@ -128,6 +135,9 @@ class Backlash(Effect):
 
     def parameter_units(self, model):
         return [_offset_unit(model, self.joints[0])]
+
+    def prior_stds(self, model):
+        return PLAY_PRIOR_MM if model.prismatic[self.joints[0]] else PLAY_PRIOR_RAD
 
     def load(self, ctx: Context, coef: tuple | None = None) -> np.ndarray:
         """The load whose sign picks the flank, (N,): the model's statics, or the identified load (`coef`, by
