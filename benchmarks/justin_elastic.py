@@ -2,7 +2,8 @@
 
 The product's own effects, fitted as the `auto` job would fit them once chosen (geometry chosen on held-out
 folds, then the causes jointly): joint compliance on the converter's guessed masses, + the lateral (bearing)
-compliance of every joint, + the mass data identified under both (diagnose._identify_masses). Split s is
+compliance of every joint, + the mass data identified under both (diagnose._identify_masses), + the motion the
+hands share at a pose weighted as noise of that pose (diagnose._with_pose_noise, kept on held-out folds). Split s is
 `split_70_30(poses, seed=s)` over recorded poses (both hands of a pose on the same side): s = 0 is
 benchmarks/real_cells.py's split, 1000 + k the k-th split of benchmarks/real_diagnosis.py. --blind adds the
 blind diagnosis (`diagnose` on the calibration part, 5-10 CPU minutes per split) as the last row. --probes asks
@@ -138,6 +139,14 @@ def fixed_forms(model, train, held) -> list[tuple[str, dict, float, object]]:
     masses = DG._identify_masses(cur, list(chosen), [], model, train, fit, notes)
     out.append(("+ mass data identified under both" + ("" if notes else " (not kept: held-out folds object)"),
                 evaluate(masses, held), time.time() - t0, masses))
+    t0 = time.time()
+    found = DG._shared_motion(masses, train, masses.sigma_mm, masses.x_basis) or []
+    weighted = DG._with_pose_noise(masses, fit, train, next((f for f in found if f.p_value < DG.ALPHA), None))
+    last = masses if weighted is None else weighted[0]
+    if weighted is None:
+        print("the hands' shared motion as noise of each pose: not kept (held-out folds object)", flush=True)
+    out.append(("+ the hands' shared motion weighted as noise of each pose (GLS, where held-out folds confirm it)",
+                evaluate(last, held), time.time() - t0, last))
     return out
 
 

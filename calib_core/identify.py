@@ -356,8 +356,14 @@ class ChainEvaluations:
 
 def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None,
          prior_scale: float = 1.0, *, evals: ChainEvaluations | None = None, covariance: bool = True,
-         damping: float = 1e-4, ftol: float = 1e-10) -> Solution:
+         damping: float = 1e-4, ftol: float = 1e-10, pose_noise: tuple[np.ndarray, float] | None = None) -> Solution:
     """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian.
+
+    `pose_noise` (Z (N, 3, U) mm per unit, tau): a motion the targets of one pose share (the joints upstream of
+    them landing a little differently at each visit) as noise of that pose, one nuisance value per pose with prior
+    std tau beside the parameters. That is generalised least squares with per-pose covariance s^2 I + tau^2 z z'
+    (a random effect). The nuisance values are left out of the solution: its x and cov are the model's (the
+    marginal covariance), and its residual is measured minus the model's prediction.
 
     `start` (default: nominal) is where LM begins; the optimum does not depend on it beyond the convergence
     tolerance. Geometric fits (no bases) may take memoised `evals` of meas's poses; `covariance=False` skips the
@@ -365,25 +371,39 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
     q, y, labels = meas.joints, meas.points, meas.labels
     p_geo = len(idx)
     K_eff = 0 if bases is None else bases[0].shape[2]
+    Z = None if pose_noise is None else pose_noise[0]
 
     def residual_jac(xs):
         x = x0.copy()
         x[idx] = xs[:p_geo]
-        if not K_eff:
+        if not K_eff and Z is None:
             if evals is not None:
                 p, J = evals(x)
                 return y - p, J[:, :, idx]
             chain = K.Chain(model, x, q, R0, labels)
             return y - chain.p, chain.jacobian()[:, :, idx]
-        theta = xs[p_geo:]
+        theta = xs[p_geo:p_geo + K_eff]
         Phi_q, Phi_p = bases
         chain = K.Chain(model, x, q + Phi_q @ theta, R0, labels)
         J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
-        return y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
+        r, J = y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
+        if Z is None:
+            return r, J
+        return r - Z @ xs[p_geo + K_eff:], np.concatenate([J, Z], axis=2)
 
     nominal, prior = _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior, K_eff)
-    return least_squares(residual_jac, nominal if start is None else start, sigma, loss=loss, covariance=covariance,
-                         damping=damping, ftol=ftol, **prior)
+    if Z is None:
+        return least_squares(residual_jac, nominal if start is None else start, sigma, loss=loss,
+                             covariance=covariance, damping=damping, ftol=ftol, **prior)
+    P, U = p_geo + K_eff, Z.shape[2]
+    std = prior.get("prior_std", np.full(P, np.inf))
+    prior = {"prior": np.r_[nominal, np.zeros(U)], "prior_std": np.r_[std, np.full(U, pose_noise[1])]}
+    begin = np.r_[nominal if start is None else start[:P], np.zeros(U)]
+    sol = least_squares(residual_jac, begin, sigma, loss=loss, covariance=covariance, damping=damping, ftol=ftol,
+                        **prior)
+    return dataclasses.replace(sol, x=sol.x[:P], cov=sol.cov[:P, :P] if sol.cov is not None else None,
+                               residual=sol.residual + Z @ sol.x[P:],
+                               undetermined=None if sol.undetermined is None else sol.undetermined[:P])
 
 
 def _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior=None, K_eff: int = 0) -> tuple[np.ndarray, dict]:
@@ -437,6 +457,7 @@ def identify(
     x_ref: np.ndarray | None = None,
     prior_scale: float = 1.0,
     refold: Callable[[Calibration], Callable[[np.ndarray], tuple[Effect, ...]]] | None = None,
+    pose_noise: tuple[np.ndarray, float] | None = None,
 ) -> Calibration:
     """Identify the independent geometric parameters (restricted to names/prefixes in `free` if given)
     jointly with the parameters of `effects`.
@@ -447,7 +468,8 @@ def identify(
     multiplies the precision of the default prior toward nominal of the joint parameters (> 1: a stronger
     pull to nominal; with regularize=True only). `refold(cal)(train)` gives each fold the effects to refit on
     its training poses (train: (N,) bool), for effects whose form was itself read off this data (a play's switch
-    found on the residual): the held-out poses then have no say in it.
+    found on the residual): the held-out poses then have no say in it. `pose_noise` (Z, tau) weights a motion the
+    targets of one pose share as noise of that pose (generalised least squares; see _fit).
 
     Raises ValueError when the pose set cannot calibrate: fewer than three distinct joint configurations
     or fewer equations than parameters. A pose set that identifies less than the model's structure allows
@@ -475,12 +497,12 @@ def identify(
         raise ValueError(f"{meas.n_poses} poses give {3 * meas.n_poses} equations for {len(idx) + n_eff} "
                          "parameters; measure more poses")
     return _calibrate(model, meas, sigma, x0, R0, ident, idx, effects=effects, loss=loss, regularize=regularize,
-                      folds=folds, x_ref=x_ref, prior_scale=prior_scale, refold=refold)[0]
+                      folds=folds, x_ref=x_ref, prior_scale=prior_scale, refold=refold, pose_noise=pose_noise)[0]
 
 
 def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None, regularize=True, folds=5,
-               x_ref=None, prior_scale=1.0, start=None, evals: ChainEvaluations | None = None, refold=None
-               ) -> tuple[Calibration, Solution]:
+               x_ref=None, prior_scale=1.0, start=None, evals: ChainEvaluations | None = None, refold=None,
+               pose_noise=None) -> tuple[Calibration, Solution]:
     """identify() once the pose set is checked, pre-aligned and analysed: the fit weighted by the noise, again
     with the model error added to the weights, and the cross-validation. Also returns the first fit (noise
     weights alone). `start` (first fit) and memoised `evals` (geometric fits) let callers that fit one pose
@@ -493,7 +515,10 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
             x_ref[idx] = geo.x
         bases = effect_bases(model, meas, effects, x_ref, R0)
     eprior = _effect_prior(model, effects)
-    fit = dict(prior_scale=prior_scale, evals=evals)
+    if pose_noise is not None and not effects:  # the geometry alone: no effect columns, fitted beside the nuisance
+        n = meas.joints.shape[1]
+        bases = (np.zeros((meas.n_poses, n, 0)), np.zeros((meas.n_poses, 3, 0)))
+    fit = dict(prior_scale=prior_scale, evals=evals, pose_noise=pose_noise)
     first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, **fit)
     sigma0_measurement = float(np.sqrt(sol.s2))
     s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
@@ -514,7 +539,7 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
             fold_bases = lambda train: effect_bases(model, meas, fold_effects(train), x_ref, R0)  # noqa: E731
         cal.holdout_residual_mm = cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases,
                                                  eprior, prior_scale=prior_scale, start=sol.x, evals=evals,
-                                                 fold_bases=fold_bases)
+                                                 fold_bases=fold_bases, pose_noise=pose_noise)
     return cal, first
 
 
@@ -536,14 +561,15 @@ def pose_folds(meas: Measurements, folds: int) -> np.ndarray:
 
 def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bases=None,
                    effect_prior=None, prior_scale: float = 1.0, start: np.ndarray | None = None,
-                   evals: ChainEvaluations | None = None, fold_bases=None) -> np.ndarray:
+                   evals: ChainEvaluations | None = None, fold_bases=None, pose_noise=None) -> np.ndarray:
     """Distance (mm) of every pose to the model fitted on the other folds.
 
     Every fold's fit begins at `start` (the full-data solution over [x[idx], effect parameters]; default
     nominal): a few poses less move the optimum little, so LM needs a step or two (to the same convergence
     test) instead of the whole way from nominal. Geometric folds are solved together (held_out), with memoised
     `evals` (may be shared with the full-data fit). `fold_bases(train)`, if given, gives each fold its own effect
-    bases (effects refitted in form on the training poses)."""
+    bases (effects refitted in form on the training poses). With `pose_noise` each fold weights the training poses'
+    shared motion (a held-out pose's own is unknown: predicted as zero)."""
     if bases is None:
         evals = evals or ChainEvaluations(model, meas.joints, R0, labels=meas.labels)
         return held_out(model, meas, x0, evals, [Folds(sigma, idx, loss, regularize, prior_scale, start)], folds)[0]
@@ -554,8 +580,9 @@ def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bas
         train, test = assign != k, assign == k
         fold = bases if fold_bases is None else fold_bases(train)
         sub = (fold[0][train], fold[1][train])
+        noise = None if pose_noise is None else (pose_noise[0][train], pose_noise[1])
         sol = _fit(model, meas.subset(train), sigma[train], x0, R0, idx, loss, regularize, sub, effect_prior,
-                   start=start, prior_scale=prior_scale, covariance=False, **warm)
+                   start=start, prior_scale=prior_scale, covariance=False, pose_noise=noise, **warm)
         x = x0.copy()
         x[idx] = sol.x[: len(idx)]
         theta = sol.x[len(idx):]

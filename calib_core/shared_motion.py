@@ -114,6 +114,16 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
     return sorted(found, key=lambda s: -s.share)
 
 
+def pose_noise(chain: Chain, meas: Measurements, s: SharedMotion) -> tuple[np.ndarray, float]:
+    """(Z, tau) for identify's `pose_noise`: the motion s as noise of each pose. Z (N, 3, U) mm per unit of the
+    motion: each row's displacement in its pose's column (Measurements.pose_index, U poses); tau its RMS per pose."""
+    u = {what: v for what, _, v in motions(chain)}[s.motion]
+    unit = meas.pose_index()
+    Z = np.zeros((len(u), 3, int(unit.max()) + 1))
+    Z[np.arange(len(u)), :, unit] = u
+    return Z, s.size
+
+
 def describe(s: SharedMotion, model: RobotModel) -> str:
     """What the residual follows, in words a process engineer can act on."""
     size = f"{1e3 * s.size:.2f} mrad" if s.unit == "rad" else f"{s.size:.3f} mm"

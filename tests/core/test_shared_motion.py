@@ -14,7 +14,7 @@ from calib_core import kinematics as K
 from calib_core.identify import fold_ids, identify, pose_folds
 from calib_core.io import Measurements
 from calib_core.model import parse_model
-from calib_core.shared_motion import pose_groups, shared_joints
+from calib_core.shared_motion import pose_groups, pose_noise, shared_joints
 from calib_core.twin import sample_uniform
 from tests.core.test_tree import torso_two_arms
 
@@ -31,8 +31,8 @@ def _campaign(tree, rng, motion: str, size_x_noise: float):
     """Both hands at every pose; `motion`: 'torso' (one torso joint off by a per-pose random angle), 'base' (the
     robot rocking about a pivot 400 mm under its base by a per-pose random tilt), 'arms' (every arm joint off by a
     per-pose random angle, each hand its own) or 'none'. The motion's 3-D RMS at a hand is size_x_noise times the
-    noise's. Returns the measurements, the true share of a hand's mean square error the motion makes, and the torso
-    joint drawn."""
+    noise's. Returns the measurements, the true share of a hand's mean square error the motion makes, the torso
+    joint drawn and the true geometry."""
     q = sample_uniform(tree, N_POSES, rng)
     x = K.nominal_vector(tree)
     geo = K.layout(tree).geometry
@@ -72,7 +72,7 @@ def _campaign(tree, rng, motion: str, size_x_noise: float):
     pts = clean + d + rng.normal(0, SIGMA_MM, clean.shape)
     meas = Measurements(joints=q[rows], points=pts, sigma=np.full(2 * N_POSES, SIGMA_MM), target=target,
                         point_ids=[f"{i}-{'lr'[t]}" for i, t in zip(rows, target)])
-    return meas, share, names[torso]
+    return meas, share, names[torso], x
 
 
 def _found(tree, meas):
@@ -120,7 +120,7 @@ def test_the_targets_of_a_pose_are_one_unit_in_folds_and_paired_tests(tree, seed
 def test_a_motion_upstream_of_the_arms_is_found_shared(tree, seed, motion):
     rng = np.random.default_rng(seed)
     size = rng.uniform(1.5, 3.0)
-    meas, truth, joint = _campaign(tree, rng, motion, size)
+    meas, truth, joint, _ = _campaign(tree, rng, motion, size)
     found = _found(tree, meas)
     significant = [s for s in found if s.p_value < 0.01]
     assert significant, (seed, motion, joint, size, found)
@@ -154,3 +154,22 @@ def test_diagnosis_says_the_hands_move_together_only_when_they_do(tree, seed, mo
         assert "move together" in text and "reference target" in text, text
     else:
         assert not shared, (seed, shared)
+
+
+def test_the_shared_motion_weighed_as_noise_of_each_pose_predicts_fresh_poses_better(tree, seed):
+    """A torso joint landing differently at each pose (2-4x the noise): the fit that weighs it as noise of each pose
+    (generalised least squares, identify's pose_noise) predicts fresh poses closer to the true geometry than ordinary
+    least squares, which lets the per-pose motion pull the parameters."""
+    rng = np.random.default_rng(seed)
+    meas, _, joint, x = _campaign(tree, rng, "torso", rng.uniform(2.0, 4.0))
+    ols = identify(tree, meas, folds=0)
+    s = next(f for f in DG._shared_motion(ols, meas, ols.sigma_mm, ols.x) if f.p_value < 0.01)
+    gls = identify(tree, meas, folds=0, pose_noise=pose_noise(ols.robot.chain(meas.joints, meas)[0], meas, s))
+    q = sample_uniform(tree, 200, rng)
+    target = np.tile([0, 1], 200)
+    fresh = Measurements(joints=np.repeat(q, 2, axis=0), points=np.zeros((400, 3)), target=target)
+    truth = K.forward(tree, x, fresh.joints, None, K.Labels(target, np.zeros(400, int)))
+    err = {name: float(np.sqrt(np.mean(np.sum((c.predict(fresh.joints, fresh) - truth) ** 2, axis=1))))
+           for name, c in (("ols", ols), ("gls", gls))}
+    assert len(gls.solution.x) == len(ols.solution.x) and gls.solution.residual.shape == meas.points.shape
+    assert err["gls"] < err["ols"], (seed, joint, s, err)
