@@ -1513,7 +1513,7 @@ def _with_pose_noise(current: Calibration, fit: _Fitter, meas: Measurements, s: 
     identify's `pose_noise`): what no function of the joint values predicts then pulls the parameters less toward
     the poses it happened to hit. The refit and a sentence saying so, if held-out poses find it better; else None
     (Agile Justin: 0.03 mm held out, RESULTS 3.10)."""
-    if s is None:
+    if s is None or not s.size > 0:  # a motion of no size has nothing to weigh (and a prior std of 0)
         return None
     chain = current.robot.chain(meas.joints, meas)[0]
     trial = fit(current.effects, current.x_basis, pose_noise=shared_motion.pose_noise(chain, meas, s))
