@@ -1507,14 +1507,19 @@ def _p(p: float) -> str:
     return "p < 1e-300" if p < 1e-300 else f"p = {p:.1e}"
 
 
+POSE_NOISE_MAX_POSES = 1000
+"""The shared motion is weighted as noise of each pose up to this many poses: one nuisance column per pose, dense in
+the fit's Jacobian (1000 poses of two targets: 6000 rows x 1000 columns more)."""
+
+
 def _with_pose_noise(current: Calibration, fit: _Fitter, meas: Measurements, s: shared_motion.SharedMotion | None
                      ) -> tuple[Calibration, str] | None:
     """The motion the targets of a pose share, weighted as noise of each pose in the fit (generalised least squares,
     identify's `pose_noise`): what no function of the joint values predicts then pulls the parameters less toward
     the poses it happened to hit. The refit and a sentence saying so, if held-out poses find it better; else None
     (Agile Justin: 0.03 mm held out, RESULTS 3.10)."""
-    if s is None or not s.size > 0:  # a motion of no size has nothing to weigh (and a prior std of 0)
-        return None
+    if s is None or not s.size > 0 or len(np.unique(meas.pose_index())) > POSE_NOISE_MAX_POSES:
+        return None  # no size: nothing to weigh (and a prior std of 0)
     chain = current.robot.chain(meas.joints, meas)[0]
     trial = fit(current.effects, current.x_basis, pose_noise=shared_motion.pose_noise(chain, meas, s))
     p, _ = holdout_gain(current, trial)
