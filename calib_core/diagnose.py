@@ -1352,18 +1352,16 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 if _better(current, t, HOLDOUT_ALPHA):
                     trial = (t, rf)
                     break
-            findings.append(_unexplained_finding(model, current, trial, floor, follows, basis))
+            before = current
             if trial is not None:
                 current = trial[0]
             weighted = _with_pose_noise(current, fit, meas, next(
                 (f["effect"] for f in follows if f.get("family") == "shared_by_targets"), None))
+            said = ""
             if weighted is not None:
                 current, said = weighted
-                f, hb = findings[-1], findings[-1]["holdout_rms_before_mm"]
-                ha = current.metrics()["holdout_rms_mm"]
-                f.update(holdout_rms_after_mm=ha, gain_pct=100.0 * (hb - ha) / hb,
-                         model_error_after_mm=model_error_mm(current, floor), evidence=f["evidence"] + "; " + said)
                 notes.append("what the targets of a pose share: " + said)
+            findings.append(_unexplained_finding(model, before, trial, floor, follows, basis, current, said))
         else:
             new_floor = float(held_out_rms)
             notes.append(f"the residual ({new_floor:.3f} mm RMS held out) is above the assumed noise floor "
@@ -1544,13 +1542,14 @@ def _drive_field(fit, chosen, x_ref, follows) -> tuple[Calibration, Probe] | Non
         return None
 
 
-def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
+def _unexplained_finding(model, before, trial, floor, follows, basis, after: Calibration, weighted: str = ""
+                         ) -> dict:
     """The `unexplained` entry: how far above the floor, what the residual follows, and which correction (if any)
-    held-out poses confirmed: `correction` is "smooth_field", "joint_driven_offsets" or None."""
+    held-out poses confirmed: `correction` is "smooth_field", "joint_driven_offsets" or None. `after` is the model
+    the entry leaves (the correction, then the shared motion weighted as noise of each pose, which `weighted` says)."""
     hb = before.metrics()["holdout_rms_mm"]
-    ha = trial[0].metrics()["holdout_rms_mm"] if trial else hb
+    ha = trial[0].metrics()["holdout_rms_mm"] if trial else hb  # what the correction alone brings it to
     mb = model_error_mm(before, floor)
-    ma = model_error_mm(trial[0], floor) if trial else mb
     if follows:
         what = "it follows " + "; ".join(f"{f['what']} (explains {f['share_pct']:.0f} %, {_p(f['p_value'])})"
                                          for f in follows[:3])
@@ -1576,9 +1575,12 @@ def _unexplained_finding(model, before, trial, floor, follows, basis) -> dict:
                 "pose (the shared joints landing a little differently at each visit, joint values commanded rather "
                 "than measured, the base moving): a model of the robot cannot remove it, a reference target on the "
                 "shared part measured at every pose or measured joint positions would")
+    if weighted:
+        fix += "; " + weighted
+    hf = after.metrics()["holdout_rms_mm"]
     return {"kind": "unexplained", "form": "unexplained", "joints": [], "correction": correction,
-            "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha,
-            "gain_pct": 100.0 * (hb - ha) / hb, "model_error_before_mm": mb, "model_error_after_mm": ma,
+            "holdout_rms_before_mm": hb, "holdout_rms_after_mm": hf, "gain_pct": 100.0 * (hb - hf) / hb,
+            "model_error_before_mm": mb, "model_error_after_mm": model_error_mm(after, floor),
             "follows": [{k: v for k, v in f.items() if k != "effect"} for f in follows],
             "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still {hb / floor:.1f}x the "
                          f"noise floor ({floor:.3f} mm) and no named cause explains it; {what}; {fix}"),

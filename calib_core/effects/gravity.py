@@ -253,8 +253,7 @@ class LateralJointCompliance(Effect):
                for j in e.joints for axis in lateral_axes(ctx.chain, j)]
         return replace(e, prior=tuple(float(TILT_PRIOR_RAD / max(r, 1e-12)) for r in rms))
 
-    @property
-    def prior_std(self) -> np.ndarray | float:
+    def prior_stds(self, model):
         return np.asarray(self.prior, float) if self.prior else np.inf
 
     def parameter_names(self, model):
