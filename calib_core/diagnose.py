@@ -1414,11 +1414,11 @@ def _gravity(e: Effect | None, model: RobotModel) -> np.ndarray:
 
 
 def _with_mass_doubt(cal: Calibration, fit: _Fitter, model: RobotModel) -> None:
-    """Give `cal` the doubt of the mass data its compliances carry (identified from these poses): one more mass step
-    fitted beside the model, whose joint covariance the prediction std propagates (uncertainty.prediction_cov).
-    Without it the std are conditional on the masses, and too small where the masses matter (the world's elastic
-    bearings: prediction z 1.3-1.7)."""
-    idx = [i for i, e in enumerate(cal.effects) if _mass_driven(e) and e.masses]
+    """Give `cal` the doubt of the mass data its compliances carry (identified from these poses, or the model's,
+    which may be 15 % off): one more mass step fitted beside the model, whose joint covariance the prediction std
+    propagates (uncertainty.prediction_cov). Without it the std are conditional on the masses, and too small where
+    the masses matter (the world's elastic bearings: prediction z 1.3-1.7)."""
+    idx = [i for i, e in enumerate(cal.effects) if _mass_driven(e) and (e.masses or model.has_mass)]
     if not idx:
         return
     step = mass_step([(cal.effects[i], cal.effect_values[i]) for i in idx], model, _gravity(cal.effects[idx[0]], model))

@@ -363,8 +363,8 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
     them landing a little differently at each visit) as noise of that pose, one nuisance value per pose with prior
     std tau beside the parameters. That is generalised least squares with per-pose covariance s^2 I + tau^2 z z'
     (a random effect). The nuisance values are left out of the solution: its x and cov are the model's block, and
-    its residual is measured minus the model's prediction. The block is the regularised estimator's sandwich with
-    the nuisance values taken as fitted, a little narrower than GLS's marginal (X' V^-1 X)^-1.
+    its residual is measured minus the model's prediction. The block of the posterior covariance (solve.py) is
+    GLS's marginal (X' V^-1 X + L)^-1 exactly (a Schur complement: the nuisance values integrated out).
 
     `start` (default: nominal) is where LM begins; the optimum does not depend on it beyond the convergence
     tolerance. Geometric fits (no bases) may take memoised `evals` of meas's poses; `covariance=False` skips the

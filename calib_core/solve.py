@@ -3,8 +3,11 @@
 The problem is `r(x) = (measured - predicted) / sigma`, three rows per pose, with an analytic Jacobian.
 Tikhonov rows `(x - x_prior) / prior_std` pull toward the nominal model; a robust loss (Huber or Cauchy)
 down-weights whole poses by iteratively re-weighted least squares on the pose's residual norm.
-Covariance: s^2 (J'WJ + L)^-1 J'WJ (J'WJ + L)^-1 with s^2 = |r|^2 / (m - p), not scipy's half cost
-(p: the number of directions the data and prior determine).
+Covariance: the posterior s^2 (J'WJ + L)^-1 with s^2 = |r|^2 / (m - p), not scipy's half cost (p: the number
+of directions the data and prior determine). A prior pulls the estimate toward it; the sandwich
+s^2 H^-1 J'WJ H^-1 (H = J'WJ + L) is that biased estimate's spread alone, and a parameter the prior holds would get
+almost no variance. H^-1 is the sandwich plus the pull's mean square when the truth lies within the prior, so it
+covers the estimate's error against the truth.
 
 Units: parameters of very different size live side by side (mm, rad, an effect in 1/(N*mm^2) ~ 1e-11), so
 the damped step and the covariance are computed in Jacobi-scaled variables z = D x, D = the column norms of
@@ -185,7 +188,7 @@ def lm_steps(
                 sqw, sw = root_weights(w)
                 rw, A, g, cost = normal_eq(x, r, J)
     if covariance:
-        cov1, undetermined, rank = _covariance(A, lam_diag, sandwich=reg)
+        cov1, undetermined, rank = _covariance(A, lam_diag)
     else:
         cov1, undetermined, rank = np.full((p, p), np.nan), None, p
     m = rw.size
@@ -204,11 +207,10 @@ def _scaled(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return H * S[:, None] * S[None, :], S
 
 
-def _covariance(A: np.ndarray, lam_diag: np.ndarray, sandwich: bool = True) -> tuple[np.ndarray, np.ndarray, int]:
-    """Covariance per unit variance factor, the mask of undetermined parameters, and the rank.
+def _covariance(A: np.ndarray, lam_diag: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Posterior covariance per unit variance factor, the mask of undetermined parameters, and the rank.
 
-    A = J'WJ, L = diag(lam_diag). With a prior the sandwich s^2 H^-1 A H^-1 (H = A + L), the sampling
-    covariance of the regularised estimator; without, s^2 A^-1. Computed on the Jacobi-scaled H by an
+    A = J'WJ, L = diag(lam_diag), H = A + L: H^-1 (A^-1 without a prior). Computed on the Jacobi-scaled H by an
     eigen-decomposition: directions with eigenvalue below UNDETERMINED_TOL of the largest carry no variance
     here, and the parameters in them are flagged (their std is inf)."""
     p = len(lam_diag)
@@ -221,12 +223,7 @@ def _covariance(A: np.ndarray, lam_diag: np.ndarray, sandwich: bool = True) -> t
     keep = e > UNDETERMINED_TOL * top if top > 0 else np.zeros(p, bool)
     Uk = U[:, keep]
     Hinv_s = (Uk / e[keep]) @ Uk.T  # pseudo-inverse on the determined subspace
-    if sandwich:
-        As = A * S[:, None] * S[None, :]
-        cov_s = Hinv_s @ As @ Hinv_s
-    else:
-        cov_s = Hinv_s
-    cov = cov_s * S[:, None] * S[None, :]
+    cov = Hinv_s * S[:, None] * S[None, :]
     cov = 0.5 * (cov + cov.T)
     undetermined = (U[:, ~keep] ** 2).sum(1) > UNDETERMINED_SHARE
     return cov, undetermined, int(keep.sum())

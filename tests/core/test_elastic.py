@@ -131,6 +131,24 @@ def test_mass_data_are_identified_under_the_compliances(seed):
     assert (doubted >= 0.98 * sure).all() and doubted.mean() > 1.05 * sure.mean(), (sure.mean(), doubted.mean())
 
 
+def test_the_models_own_mass_data_carry_their_doubt_too(seed):
+    """Compliances fitted on the model's mass data, which are 15 % and 30 mm off the world's: the prediction std
+    propagate a mass step's doubt as they do for identified masses (they widen, never narrow)."""
+    rng = np.random.default_rng((seed, 11))
+    phi = body_parameters(TREE)
+    true = phi * rng.uniform(0.85, 1.15, len(phi))[:, None]
+    true[:, 1:] += rng.normal(0, 30.0, (len(phi), 3)) * true[:, :1]
+    meas, fit, chosen, _ = _elastic_world(seed, rng, masses=tuple(map(tuple, true)))
+    cal = fit(chosen)
+    assert not any(e.masses for e in cal.effects)
+    fresh, *_ = _poses(seed + 1, 100)
+    sure = prediction_std_mm(cal, fresh.joints, fresh)
+    DG._with_mass_doubt(cal, fit, TREE)
+    assert cal.mass_doubt, "the model's masses carry their doubt"
+    doubted = prediction_std_mm(cal, fresh.joints, fresh)
+    assert (doubted >= 0.98 * sure).all() and doubted.mean() > 1.05 * sure.mean(), (sure.mean(), doubted.mean())
+
+
 def test_gravity_direction_is_identified_with_the_mass_data(seed):
     """A base frame 10-30 mrad off level (the world's gravity tilted against the model's base z, about a drawn axis):
     on the model's gravity a pitch joint's large torque leaks into the bending moments across it as a load-shaped
