@@ -8,16 +8,16 @@ import numpy as np
 import pytest
 
 from calib_core.diagnose import (ALPHA, NAMED_SHARE, PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, _Fitter,
-                                 _identified_backlash, _judge_sizes, diagnose, holdout_gain, holdout_ms,
-                                 noise_floor_mm, runs_probability, screen)
-from calib_core.effects import CyclicJointError, candidates
+                                 _identified_backlash, _identify_masses, _judge_sizes, _Search, diagnose, holdout_gain,
+                                 holdout_ms, noise_floor_mm, runs_probability, screen)
+from calib_core.effects import CyclicJointError, JointCompliance, LateralJointCompliance, candidates
 from calib_core.identify import CalibratedRobot, evaluate, identify
 from calib_core.model import parse_model
 from calib_core.pipeline import calibrate
 from calib_core.robots import arm6, spray7
 from calib_core.uncertainty import z_scores
 from calib_world import EXPECTED, KINDS, World, hide, null_world
-from calib_world.mechanics import ReHoming
+from calib_world.mechanics import ElasticBearings, JointSpring, ReHoming
 from calib_world.scenarios import size_cause
 
 SPRAY = parse_model(spray7())
@@ -575,3 +575,50 @@ def test_a_cause_of_no_physical_size_is_said_to_be_a_correction(seed):
         assert finding.get("physical", True) is physical, where
         assert ("not physical" in finding["evidence"]) is (not physical), where
         assert physical or SPRAY.joint_names[j] in finding["evidence"], where
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("every", [True, False])
+def test_a_compliance_spread_over_the_joints_replaces_the_one_found_first(every, seed):
+    """The world's bearings tilt under their bending moments, and a spring winds every loaded joint (or one drawn
+    joint), masses 15 % off. The search found the lateral form and that one joint's compliance, and identified the
+    mass data under them. `_Search.spread` tries the compliance of every joint in its place, with the mass data
+    identified again: taken where every joint gives (the error against the truth on fresh poses falls), and where
+    one joint does, refused or harmless (the paired test at 5 % passes by chance: 1 of 11 development seeds, +8 %)."""
+    rng = np.random.default_rng((seed, 21))
+    world = World(SPRAY, int(rng.integers(2**31)))
+    q = world.sample_joints(150, rng)
+    cols = world.columns(q, [0.0, 10.0, 20.0])
+    named, _ = candidates(SPRAY, cols)
+    spread = next(e for e in named if type(e) is JointCompliance and len(e.joints) > 1)
+    lateral = next(e for e in named if isinstance(e, LateralJointCompliance))
+    noise = world.noise_rms_mm(q)
+    bent = [SPRAY.joint_names[j] for j in lateral.joints]
+    world.hide(size_cause(world, ElasticBearings(tuple(bent), tuple(rng.uniform(0.5, 2.0, len(bent)) * 1e-6)),
+                          3 * noise, q, cols)[0])
+    j = int(rng.choice(spread.joints))
+    for k in spread.joints if every else (j,):
+        spring = JointSpring(SPRAY.joint_names[k], compliance=1e-6)
+        world.hide(size_cause(world, spring, rng.uniform(2, 4) * noise, q, cols)[0])
+    meas = world.campaign(q, payload_kg=[0.0, 10.0, 20.0]).meas
+    fit = _Fitter(SPRAY, meas, None, 5, None, 1.0)
+    chosen = [lateral, JointCompliance((j,))]
+    findings = [{"kind": e.kind, "joints": [], "form": e.label(SPRAY)} for e in chosen]
+    notes: list[str] = []
+    current = _identify_masses(fit(chosen), chosen, findings, SPRAY, meas, fit, notes)
+    floor, _, _ = noise_floor_mm(meas, meas.noise_sigma_mm())
+    search = _Search(SPRAY, meas, current.sigma_mm, ALPHA, fit, floor, named, {}, current, current.x,
+                     chosen=list(chosen), findings=findings)
+    fresh = world.sample_joints(100, np.random.default_rng((seed, 22)))
+    fresh_cols = world.columns(fresh, [0.0, 10.0, 20.0])
+    truth = world.true_points(fresh, fresh_cols)
+    err = lambda cal: np.sqrt(np.mean(np.sum((cal.predict(fresh, fresh_cols) - truth) ** 2, 1)))  # noqa: E731
+    took = search.spread(notes, lambda *a: None)
+    where = f"seed {seed}, {'every joint' if every else SPRAY.joint_names[j]}: {search.rejected[-1:]}"
+    if every:
+        assert took and search.chosen[-1].joints == spread.joints, where
+        assert not any(type(e) is JointCompliance and e.joints == (j,) for e in search.chosen), where
+        assert err(search.current) < 0.7 * err(current), (err(current), err(search.current), where)
+    else:
+        assert err(search.current) < 1.25 * err(current), (err(current), err(search.current), where)
+    assert len(search.findings) == len(search.chosen)
