@@ -1626,7 +1626,8 @@ def _unexplained_finding(model, before, trial, floor, follows, basis, after: Cal
                          ) -> dict:
     """The `unexplained` entry: how far above the floor, what the residual follows, and which correction (if any)
     held-out poses confirmed: `correction` is "smooth_field", "joint_driven_offsets" or None. `after` is the model
-    the entry leaves (the correction, then the shared motion weighted as noise of each pose, which `weighted` says)."""
+    the entry leaves (the correction, then the shared motion weighted as noise of each pose, which `weighted` says;
+    `weighted_as_pose_noise` flags it)."""
     hb = before.metrics()["holdout_rms_mm"]
     ha = trial[0].metrics()["holdout_rms_mm"] if trial else hb  # what the correction alone brings it to
     mb = model_error_mm(before, floor)
@@ -1659,7 +1660,7 @@ def _unexplained_finding(model, before, trial, floor, follows, basis, after: Cal
         fix += "; " + weighted
     hf = after.metrics()["holdout_rms_mm"]
     return {"kind": "unexplained", "form": "unexplained", "joints": [], "correction": correction,
-            "holdout_rms_before_mm": hb, "holdout_rms_after_mm": hf, "gain_pct": 100.0 * (hb - hf) / hb,
+            "weighted_as_pose_noise": bool(weighted), "holdout_rms_before_mm": hb, "holdout_rms_after_mm": hf, "gain_pct": 100.0 * (hb - hf) / hb,
             "model_error_before_mm": mb, "model_error_after_mm": model_error_mm(after, floor),
             "follows": [{k: v for k, v in f.items() if k != "effect"} for f in follows],
             "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still {hb / floor:.1f}x the "

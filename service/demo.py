@@ -287,7 +287,11 @@ def cause_name(f: dict) -> str:
         return finding_title(f)
     if "correction" not in f:  # a step in time order (diagnose._finding of a SessionStep)
         return "a step in time order" + (f" of {', '.join(f['joints'])}" if f.get("joints") else "")
-    return f"structure no named cause explains, {UNEXPLAINED[f['correction']]}"
+    said = UNEXPLAINED[f["correction"]]
+    if f.get("weighted_as_pose_noise"):
+        said = ("not corrected by a model, but what the targets of a pose share is weighted as noise of each pose"
+                if f["correction"] is None else said + ", and what the targets of a pose share weighted as noise")
+    return f"structure no named cause explains, {said}"
 
 
 def errors_mm(points_mm: np.ndarray, predicted_mm: np.ndarray) -> dict:
