@@ -1303,7 +1303,6 @@ class _Search:
             # identified without it, the steps stay near a model that lacked it)
             chosen = [_on_model_masses(self.chosen[i]) for i in keep] + [e]
             findings, said = [dict(self.findings[i]) for i in keep], list(notes)
-            base = self.fit(chosen[:-1], self.current.x)
             trial = _identify_masses(self.fit(chosen, self.current.x), chosen, findings, self.model, self.meas,
                                      self.fit, said)
             hb, ht = self.current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
@@ -1313,6 +1312,7 @@ class _Search:
                                       f"the mass data identified again: held-out poses do not confirm it ({hb:.3f} -> "
                                       f"{ht:.3f} mm, paired p = {p:.1e})"})
                 continue
+            base = self.fit(chosen[:-1], trial.x)  # what the spread form adds, for its finding's figures
             ranked, _ = screen(base, self.meas, self.sigma, [chosen[-1]], base.x, self.alpha)
             if not ranked:
                 continue
@@ -1460,7 +1460,8 @@ def _subsumed(e: Effect, spread: Effect) -> bool:
     every joint beside T4c's own was judged with T4c's column twice)."""
     def linear(c: Effect) -> bool:
         return type(c) is JointCompliance and not c.stiffening and not c.load_coef
-    return linear(spread) and len(spread.joints) > 1 and linear(e) and len(e.joints) == 1 and e.joints[0] in spread.joints
+    return (linear(spread) and len(spread.joints) > 1 and linear(e) and len(e.joints) == 1
+            and e.joints[0] in spread.joints)
 
 
 def _on_model_masses(e: Effect) -> Effect:
@@ -1660,7 +1661,8 @@ def _unexplained_finding(model, before, trial, floor, follows, basis, after: Cal
         fix += "; " + weighted
     hf = after.metrics()["holdout_rms_mm"]
     return {"kind": "unexplained", "form": "unexplained", "joints": [], "correction": correction,
-            "weighted_as_pose_noise": bool(weighted), "holdout_rms_before_mm": hb, "holdout_rms_after_mm": hf, "gain_pct": 100.0 * (hb - hf) / hb,
+            "weighted_as_pose_noise": bool(weighted), "holdout_rms_before_mm": hb, "holdout_rms_after_mm": hf,
+            "gain_pct": 100.0 * (hb - hf) / hb,
             "model_error_before_mm": mb, "model_error_after_mm": model_error_mm(after, floor),
             "follows": [{k: v for k, v in f.items() if k != "effect"} for f in follows],
             "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still {hb / floor:.1f}x the "
