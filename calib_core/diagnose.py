@@ -1499,8 +1499,8 @@ def _with_mass_doubt(cal: Calibration, fit: _Fitter, model: RobotModel) -> None:
     which may be 15 % off): one more mass step fitted beside the model, whose joint covariance the prediction std
     propagates (uncertainty.prediction_cov). Without it the std are conditional on the masses, and too small where
     the masses matter (the world's elastic bearings: prediction z 1.3-1.7)."""
-    idx = [i for i, e in enumerate(cal.effects) if _mass_driven(e) and (e.masses or model.has_mass)]
-    if not idx:
+    idx = [i for i, e in enumerate(cal.effects) if _mass_driven(e)]
+    if not idx or not model.has_mass:  # identified masses need the model's (they start from them)
         return
     step = mass_step([(cal.effects[i], cal.effect_values[i]) for i in idx], model, _gravity(cal.effects[idx[0]], model))
     try:
