@@ -25,8 +25,8 @@ from . import kinematics as K
 from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance, Probe, SessionStep, candidates,
                       has_loads, loads)
 from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJointCompliance, _as_tuple,
-                              body_parameters, carried_columns, gravity_regressor, lateral_axes, load_mix_for,
-                              mass_step, payload_load, tilted)
+                              body_parameters, carried_columns, drive_payload_load, drive_regressor, lateral_axes,
+                              load_mix_for, mass_step, tilted)
 from .effects.joint_effects import LOAD_DOUBT
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
@@ -649,7 +649,7 @@ class _LoadFeatures:
 
     @classmethod
     def of(cls, ref: K.Chain, meas: Measurements, j: int) -> "_LoadFeatures | None":
-        F = np.column_stack([gravity_regressor(ref, j), payload_load(ref, meas.payload_kg(), j)])
+        F = np.column_stack([drive_regressor(ref, j), drive_payload_load(ref, meas.payload_kg(), j)])
         scale = np.linalg.norm(F, axis=0)
         keep = carried_columns(F)
         if not keep.any():
@@ -679,8 +679,9 @@ class _LoadFeatures:
 
 
 def _joint_columns(cal: Calibration, meas: Measurements) -> np.ndarray:
-    """How the measured point moves per unit of each joint (N, 3, n), on cal's geometry with its effects."""
-    return cal.robot.chain(meas.joints, meas)[0].joint_jacobian()
+    """How the measured point moves per unit of each joint's drive (N, 3, n), on cal's geometry with its effects
+    (a drive that coupled rows follow moves them too)."""
+    return cal.robot.chain(meas.joints, meas)[0].joint_jacobian() @ cal.model.drive_motion()
 
 
 def _joint_offsets(col: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -256,6 +256,15 @@ class RobotModel:
             A[row] = sum(c * A[src] for src, c in terms)
         return A
 
+    def drive_motion(self) -> np.ndarray:
+        """(n, n): column j, how each row moves per unit motion of row j's own drive. An actuated row's drive
+        moves the coupled rows that follow it by their coefficients (a drive's deflection, play or gear error
+        turns the whole coupled mechanism); a coupled or fixed row moves only itself."""
+        M = np.eye(self.n_joints)
+        if self.coupling:
+            M[:, self.actuated] = self.coupling_matrix()
+        return M
+
     @property
     def has_mass(self) -> bool:
         return self.mass is not None

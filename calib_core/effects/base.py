@@ -32,6 +32,11 @@ class Context:
         gravity + payload load of the model's statics."""
         return loads(self.chain, self.meas)
 
+    @cached_property
+    def moves(self) -> np.ndarray:
+        """(n, n) RobotModel.drive_motion: column j, the rows a unit motion of joint j's drive moves."""
+        return self.model.drive_motion()
+
 
 def has_loads(model: RobotModel, meas: Measurements) -> bool:
     """Load-driven causes can be tested: the model has masses or the data carry measured joint torques."""
@@ -39,12 +44,14 @@ def has_loads(model: RobotModel, meas: Measurements) -> bool:
 
 
 def loads(chain: Chain, meas: Measurements, phi: np.ndarray | None = None, g: np.ndarray | None = None) -> np.ndarray:
-    """(N, n) N*m or N.  A measured joint torque tau (tau_<joint>, what the joint applies to hold the arm) is the
-    gravity load's opposite, so the load is -tau; joints without a measured torque take the statics of the model's
-    mass data or of `phi` (identified ones, see statics.distal_loads), under the model's gravity or `g` (identified,
-    see statics.gravity_world); zero when there are none."""
+    """(N, n) N*m or N: the load on each joint's drive.  A measured joint torque tau (tau_<joint>, what the joint
+    applies to hold the arm) is the gravity load's opposite, so the load is -tau; joints without a measured torque
+    take the statics of the model's mass data or of `phi` (identified ones, see statics.distal_loads), under the
+    model's gravity or `g` (identified, see statics.gravity_world); zero when there are none. The drive of an
+    actuated joint that coupled rows follow carries their loads too, by their coefficients (virtual work:
+    drive_motion' times the rows' loads): on Agile Justin's torso T2's drive holds T2's load minus T4c's."""
     model = chain.model
-    out = (joint_loads(chain, meas.payload_kg(), phi, g) if model.has_mass or phi is not None
+    out = (joint_loads(chain, meas.payload_kg(), phi, g) @ model.drive_motion() if model.has_mass or phi is not None
            else np.zeros((chain.N, model.n_joints)))
     if meas.tau is not None:
         given = ~np.isnan(meas.tau)
@@ -127,11 +134,14 @@ class Effect:
         return [(j, dq[:, j]) for j in self.joints]
 
 
-def joint_basis(n_poses: int, n_joints: int, j: int, columns: np.ndarray) -> np.ndarray:
-    """(N, n, k) basis with the k columns (N, k) acting on joint j only."""
-    out = np.zeros((n_poses, n_joints, columns.shape[1]))
-    out[:, j, :] = columns
-    return out
+def joint_basis(n_poses: int, n_joints: int, j: int, columns: np.ndarray, moves: np.ndarray | None = None) -> np.ndarray:
+    """(N, n, k) basis with the k columns (N, k) acting on joint j's drive: on row j only, or with `moves`
+    (Context.moves) on every row that drive moves."""
+    if moves is None:
+        out = np.zeros((n_poses, n_joints, columns.shape[1]))
+        out[:, j, :] = columns
+        return out
+    return moves[None, :, j, None] * columns[:, None, :]
 
 
 def apply(effects: list[Effect], values: list[np.ndarray], ctx: Context) -> tuple[np.ndarray, np.ndarray]:

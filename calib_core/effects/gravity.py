@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from ..kinematics import _cross
 from ..statics import gravity_moments, gravity_world
-from .base import Basis, Context, Effect
+from .base import Basis, Context, Effect, joint_basis
 
 MAX_LOAD_TERMS = 6
 """At most this many regressor combinations per joint: a joint's gravity torque over a workspace is a few
@@ -53,6 +53,36 @@ def gravity_regressor(chain, j: int, axis: np.ndarray | None = None, g: np.ndarr
         cols.append((z * _cross(chain.o_beta[k] - o, np.broadcast_to(g, o.shape))).sum(1)[:, None] / 1000.0)
         cols.append(np.einsum("nab,na->nb", chain.R[k], gz) / 1000.0)
     return np.concatenate(cols, axis=1)
+
+
+def drive_bodies(model, j: int) -> np.ndarray:
+    """The bodies whose mass loads joint j's drive (statics.loads): those j carries and those the coupled rows
+    its drive moves carry, in row order."""
+    moved = np.flatnonzero(model.drive_motion()[:, j])
+    return np.unique(np.concatenate([model.descendants(r) for r in moved]))
+
+
+def drive_regressor(chain, j: int, g: np.ndarray | None = None) -> np.ndarray:
+    """gravity_regressor of the load on joint j's drive (N, m): its own, or where coupled rows follow the drive,
+    the sum of theirs by their coefficients, on 4 columns per body of drive_bodies (a prismatic row's load has
+    only the mass column)."""
+    moves = chain.model.drive_motion()[:, j]
+    moved = np.flatnonzero(moves)
+    if len(moved) == 1:
+        return gravity_regressor(chain, j, None, g)
+    bodies = drive_bodies(chain.model, j)
+    out = np.zeros((chain.N, 4 * len(bodies)))
+    for r in moved:
+        at = 4 * np.searchsorted(bodies, chain.model.descendants(r))
+        cols = at if chain.model.prismatic[r] else (at[:, None] + np.arange(4)).ravel()
+        out[:, cols] += moves[r] * gravity_regressor(chain, r, None, g)
+    return out
+
+
+def drive_payload_load(chain, payload_kg: np.ndarray, j: int) -> np.ndarray:
+    """payload_load on joint j's drive (N,): with the coupled rows it moves, by their coefficients."""
+    moves = chain.model.drive_motion()[:, j]
+    return sum(moves[r] * payload_load(chain, payload_kg, r) for r in np.flatnonzero(moves))
 
 
 NEGLIGIBLE_LOAD = 1e-9
@@ -137,14 +167,11 @@ class LoadCompliance(Effect):
         N, n = ctx.meas.joints.shape
         cols, reg = [], np.zeros(N)
         for j, mix in zip(self.joints, self.load_mix):
-            Y = gravity_regressor(ctx.chain, j) @ _as_matrix(mix)
+            Y = drive_regressor(ctx.chain, j) @ _as_matrix(mix)
             part = [Y]
             if self.payload:
-                part.append(payload_load(ctx.chain, ctx.meas.payload_kg(), j)[:, None])
-            block = np.concatenate(part, axis=1)
-            b = np.zeros((N, n, block.shape[1]))
-            b[:, j, :] = block
-            cols.append(b)
+                part.append(drive_payload_load(ctx.chain, ctx.meas.payload_kg(), j)[:, None])
+            cols.append(joint_basis(N, n, j, np.concatenate(part, axis=1), ctx.moves))
             if len(self.joints) == 1:
                 reg = Y[:, 0]
         label = ("identified gravity load on " + ",".join(ctx.model.joint_names[j] for j in self.joints)
@@ -163,13 +190,13 @@ def load_mix_for(chain, j: int, absorb: np.ndarray | None = None, Jq: np.ndarray
                  max_terms: int = MAX_LOAD_TERMS) -> np.ndarray | None:
     """The regressor combinations M_j (m, r) of joint j that the poses excite, orthogonal to what the
     current model absorbs (Q, (3N, p) orthonormal, weighted by sigma) when given; None if none is left.
-    Jq is the joint's displacement per unit offset: the joint Jacobian (N, 3, n), or with `axis` the
-    (N, 3) displacement of a unit tilt about that axis."""
-    Y = gravity_regressor(chain, j, axis)
+    Jq is the joint's displacement per unit offset: the joint Jacobian (N, 3, n) (the drive's, with the coupled
+    rows it moves), or with `axis` the (N, 3) displacement of a unit tilt about that axis."""
+    Y = gravity_regressor(chain, j, axis) if axis is not None else drive_regressor(chain, j)
     if absorb is None:
         A0 = Y
     else:
-        move = Jq[:, :, j] if axis is None else Jq
+        move = Jq @ chain.model.drive_motion()[:, j] if axis is None else Jq
         A0 = (move[:, :, None] * Y[:, None, :] / sigma[:, None, None]).reshape(-1, Y.shape[1])
     scale = np.linalg.norm(A0, axis=0)
     keep = carried_columns(Y) & (scale > 1e-9 * max(scale.max(), 1e-300))
@@ -184,7 +211,7 @@ def load_mix_for(chain, j: int, absorb: np.ndarray | None = None, Jq: np.ndarray
         return None
     M = np.zeros((Y.shape[1], r))
     M[keep] = Vt[:r].T / scale[keep, None]
-    rms = np.sqrt(np.mean((gravity_regressor(chain, j, axis) @ M) ** 2, axis=0))
+    rms = np.sqrt(np.mean((Y @ M) ** 2, axis=0))
     return M / np.where(rms > 0, rms, 1.0)  # each combination of unit RMS load: its parameter is an RMS offset
 
 
@@ -366,7 +393,7 @@ class MassStep(Effect):
                         swing = _cross(axis, lever) * v[2 * t + a]
                         bp[:, :, dst] += swing[:, :, None] * gravity_regressor(ch, j, axis, g)[:, None, src]
                 elif not model.prismatic[j]:  # a linear axis' force changes with the carried mass only: left to the fit
-                    bq[:, j, dst] += v[t] * gravity_regressor(ch, j, None, g)[:, src]
+                    bq[:, :, dst] += v[t] * ctx.moves[None, :, j, None] * drive_regressor(ch, j, g)[:, None, src]
             here_q, here_p = effect.basis(ctx).dense(n, len(v))
             size = np.sqrt((here_q**2).sum((0, 1)) + (here_p**2).sum((0, 1)))
             v = np.where(size > 1e-9 * size.max(), v, 0.0)  # a load of rounding (a vertical axis) fits no compliance
@@ -381,7 +408,7 @@ class MassStep(Effect):
         """Joint j's regressor columns (gravity_regressor: 4 per carried body) of the bodies this step identifies,
         and the step's columns they go to."""
         at = {k: i for i, k in enumerate(self.bodies)}
-        pairs = [(4 * i + c, 4 * at[k] + c) for i, k in enumerate(model.descendants(j)) if k in at for c in range(4)]
+        pairs = [(4 * i + c, 4 * at[k] + c) for i, k in enumerate(drive_bodies(model, j)) if k in at for c in range(4)]
         src, dst = np.array(pairs, int).reshape(-1, 2).T
         return src, dst
 

@@ -1,4 +1,7 @@
-"""Causes that act as an offset of one joint: compliance, backlash, cyclic (gear) error, scale error."""
+"""Causes that act as an offset of one joint: compliance, backlash, cyclic (gear) error, scale error.
+
+Each acts on the joint's drive: where coupled rows follow an actuated joint (a parallelogram, Agile Justin's
+torso), the drive's offset moves them too (Context.moves) and its load is the drive's (base.loads)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -30,6 +33,14 @@ def _load_unit(model: RobotModel, j: int) -> str:
     return "N" if model.prismatic[j] else "N*m"
 
 
+def _followers(model: RobotModel, joints) -> str:
+    """", turning X with it" for the coupled rows the joints' drives move (Context.moves), else ""."""
+    moves = model.drive_motion()
+    rows = sorted({int(r) for j in joints for r in np.flatnonzero(moves[:, j]) if r != j} - set(joints))
+    return f", turning {', '.join(model.joint_names[r] for r in rows)} with {'it' if len(joints) == 1 else 'them'}" \
+        if rows else ""
+
+
 def hardening(u: np.ndarray, r: float) -> np.ndarray:
     """The deflection g of a stiffening spring, g + r g^3 = u (all in units of the largest load): the real
     root by Cardano's formula; g = u for a linear spring (r = 0)."""
@@ -41,12 +52,12 @@ def hardening(u: np.ndarray, r: float) -> np.ndarray:
 
 
 def identified_load(ctx: Context, j: int, coef: tuple) -> np.ndarray:
-    """Joint j's load identified from the data, (N,): gravity regressor columns and the payload column weighted by
-    `coef` (see gravity.py), in N*m or N, or in a play's transition units when its softness was fitted."""
-    from .gravity import gravity_regressor, payload_load
+    """The load on joint j's drive identified from the data, (N,): gravity regressor columns and the payload column
+    weighted by `coef` (see gravity.py), in N*m or N, or in a play's transition units when its softness was fitted."""
+    from .gravity import drive_payload_load, drive_regressor
 
     coef = np.asarray(coef, float)
-    return gravity_regressor(ctx.chain, j) @ coef[:-1] + coef[-1] * payload_load(ctx.chain, ctx.meas.payload_kg(), j)
+    return drive_regressor(ctx.chain, j) @ coef[:-1] + coef[-1] * drive_payload_load(ctx.chain, ctx.meas.payload_kg(), j)
 
 
 @dataclass(frozen=True)
@@ -87,8 +98,8 @@ class JointCompliance(Effect):
                 ctx.chain, ctx.meas, np.asarray(self.masses, float) if self.masses else None,
                 np.asarray(self.gravity, float) if self.gravity else None)
         unit = 1.0 if self.load_coef else self.load_scale  # the parameter is a deflection, or a compliance
-        for i, k in enumerate(self.joints):
-            b[:, k, i] = hardening(load[:, k] / self.load_scale, self.stiffening) * unit
+        for i, k in enumerate(self.joints):  # the drive deflects, and the coupled rows it moves with it
+            b[:, :, i] = ctx.moves[None, :, k] * hardening(load[:, k] / self.load_scale, self.stiffening)[:, None] * unit
         how = "identified " if self.load_coef else ""
         return Basis(b, None, load[:, j],
                      f"{how}gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
@@ -102,10 +113,12 @@ class JointCompliance(Effect):
         who = ", ".join(model.joint_names[j] for j in self.joints)
         one = len(self.joints) == 1
         how = " (its load identified from the data)" if self.load_coef else ""
+        also = _followers(model, self.joints)
         if self.stiffening:
             return (f"{who} deflect{'s' if one else ''} under gravity and payload load, as a spring that stiffens with "
-                    f"load{how}")
-        return f"{who} deflect{'s' if one else ''} in proportion to {'its' if one else 'their'} gravity and payload load"
+                    f"load{how}{also}")
+        return (f"{who} deflect{'s' if one else ''} in proportion to {'its' if one else 'their'} gravity and payload "
+                f"load{also}")
 
 
 @dataclass(frozen=True)
@@ -173,12 +186,13 @@ class Backlash(Effect):
         load = self.load(ctx)
         N, n = ctx.meas.joints.shape
         how = "identified " if self.load_coef else ""
-        return Basis(joint_basis(N, n, j, 0.5 * self.flank(load)[:, None]), None, load,
+        return Basis(joint_basis(N, n, j, 0.5 * self.flank(load)[:, None], ctx.moves), None, load,
                      f"{how}gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
 
     def explain(self, model):
         how = " (its load identified from the data)" if self.load_coef else ""
-        return f"{model.joint_names[self.joints[0]]} shifts by its gear play when its load changes sign{how}"
+        return (f"{model.joint_names[self.joints[0]]} shifts by its gear play when its load changes sign{how}"
+                f"{_followers(model, self.joints)}")
 
 
 @dataclass(frozen=True)
@@ -199,7 +213,7 @@ class CyclicJointError(Effect):
         q = ctx.meas.joints[:, j]
         cols = np.column_stack([np.cos(self.harmonic * q), np.sin(self.harmonic * q)])
         N, n = ctx.meas.joints.shape
-        return Basis(joint_basis(N, n, j, cols), None, np.degrees(q), f"{ctx.model.joint_names[j]} angle (deg)")
+        return Basis(joint_basis(N, n, j, cols, ctx.moves), None, np.degrees(q), f"{ctx.model.joint_names[j]} angle (deg)")
 
     def explain(self, model):
         return (f"{model.joint_names[self.joints[0]]} has an error that repeats {self.harmonic} time(s) per turn "
@@ -226,7 +240,7 @@ class JointScale(Effect):
         N, n = ctx.meas.joints.shape
         unit = "mm" if ctx.model.prismatic[j] else "deg"
         reg = q if ctx.model.prismatic[j] else np.degrees(q)
-        return Basis(joint_basis(N, n, j, (q - mid)[:, None]), None, reg, f"{ctx.model.joint_names[j]} ({unit})")
+        return Basis(joint_basis(N, n, j, (q - mid)[:, None], ctx.moves), None, reg, f"{ctx.model.joint_names[j]} ({unit})")
 
     def explain(self, model):
         return f"{model.joint_names[self.joints[0]]} moves by a slightly different amount than it reports"
