@@ -134,7 +134,8 @@ class Effect:
         return [(j, dq[:, j]) for j in self.joints]
 
 
-def joint_basis(n_poses: int, n_joints: int, j: int, columns: np.ndarray, moves: np.ndarray | None = None) -> np.ndarray:
+def joint_basis(n_poses: int, n_joints: int, j: int, columns: np.ndarray,
+                moves: np.ndarray | None = None) -> np.ndarray:
     """(N, n, k) basis with the k columns (N, k) acting on joint j's drive: on row j only, or with `moves`
     (Context.moves) on every row that drive moves."""
     if moves is None:

@@ -405,8 +405,8 @@ class MassStep(Effect):
         return Basis(bq, bp, np.zeros(N), "mass data")
 
     def _columns(self, model, j: int) -> tuple[np.ndarray, np.ndarray]:
-        """Joint j's regressor columns (gravity_regressor: 4 per carried body) of the bodies this step identifies,
-        and the step's columns they go to."""
+        """Joint j's drive regressor columns (drive_regressor: 4 per body of drive_bodies) of the bodies this step
+        identifies, and the step's columns they go to."""
         at = {k: i for i, k in enumerate(self.bodies)}
         pairs = [(4 * i + c, 4 * at[k] + c) for i, k in enumerate(drive_bodies(model, j)) if k in at for c in range(4)]
         src, dst = np.array(pairs, int).reshape(-1, 2).T

@@ -57,7 +57,8 @@ def identified_load(ctx: Context, j: int, coef: tuple) -> np.ndarray:
     from .gravity import drive_payload_load, drive_regressor
 
     coef = np.asarray(coef, float)
-    return drive_regressor(ctx.chain, j) @ coef[:-1] + coef[-1] * drive_payload_load(ctx.chain, ctx.meas.payload_kg(), j)
+    payload = drive_payload_load(ctx.chain, ctx.meas.payload_kg(), j)
+    return drive_regressor(ctx.chain, j) @ coef[:-1] + coef[-1] * payload
 
 
 @dataclass(frozen=True)
@@ -99,7 +100,8 @@ class JointCompliance(Effect):
                 np.asarray(self.gravity, float) if self.gravity else None)
         unit = 1.0 if self.load_coef else self.load_scale  # the parameter is a deflection, or a compliance
         for i, k in enumerate(self.joints):  # the drive deflects, and the coupled rows it moves with it
-            b[:, :, i] = ctx.moves[None, :, k] * hardening(load[:, k] / self.load_scale, self.stiffening)[:, None] * unit
+            spring = hardening(load[:, k] / self.load_scale, self.stiffening) * unit
+            b[:, :, i] = ctx.moves[None, :, k] * spring[:, None]
         how = "identified " if self.load_coef else ""
         return Basis(b, None, load[:, j],
                      f"{how}gravity load on {ctx.model.joint_names[j]} ({_load_unit(ctx.model, j)})")
@@ -213,7 +215,8 @@ class CyclicJointError(Effect):
         q = ctx.meas.joints[:, j]
         cols = np.column_stack([np.cos(self.harmonic * q), np.sin(self.harmonic * q)])
         N, n = ctx.meas.joints.shape
-        return Basis(joint_basis(N, n, j, cols, ctx.moves), None, np.degrees(q), f"{ctx.model.joint_names[j]} angle (deg)")
+        return Basis(joint_basis(N, n, j, cols, ctx.moves), None, np.degrees(q),
+                     f"{ctx.model.joint_names[j]} angle (deg)")
 
     def explain(self, model):
         return (f"{model.joint_names[self.joints[0]]} has an error that repeats {self.harmonic} time(s) per turn "
@@ -240,7 +243,8 @@ class JointScale(Effect):
         N, n = ctx.meas.joints.shape
         unit = "mm" if ctx.model.prismatic[j] else "deg"
         reg = q if ctx.model.prismatic[j] else np.degrees(q)
-        return Basis(joint_basis(N, n, j, (q - mid)[:, None], ctx.moves), None, reg, f"{ctx.model.joint_names[j]} ({unit})")
+        return Basis(joint_basis(N, n, j, (q - mid)[:, None], ctx.moves), None, reg,
+                     f"{ctx.model.joint_names[j]} ({unit})")
 
     def explain(self, model):
         return f"{model.joint_names[self.joints[0]]} moves by a slightly different amount than it reports"
