@@ -34,6 +34,9 @@ MAX_MASS_KG = 1e5
 """mass of one body: 100 t."""
 MAX_PAYLOAD_KG = 1e4
 """payload at the tool: 10 t."""
+MAX_COUPLING = 1e3
+"""|coefficient| of a coupled joint in the model's units: a linkage, gear or mimic ratio (Agile Justin -1, a
+telescopic column 0.5); 1e200 made the drive's load overflow into an SVD that did not converge."""
 MAX_GRAVITY_MS2 = 20.0
 """|gravity| in m/s^2: about twice the Earth's (9.81); a vector in mm/s^2 is caught."""
 SIGMA_RANGE_MM = (1e-4, 100.0)
@@ -657,6 +660,9 @@ def _couplings(errors, names, given, fixed, scale) -> tuple:
                 continue
             if k == "offset":
                 offset = v * scale[j]
+            elif abs(v) > MAX_COUPLING:
+                errors.append({"field": f"{where}.{k}", "value": v,
+                               "message": f"a coupling coefficient must be within +-{MAX_COUPLING:g} (model units)"})
             elif k not in names or k == names[j]:
                 errors.append({"field": f"{where}.{k}", "value": k, "message": "must name another joint of the model"})
             elif fixed[names.index(k)]:

@@ -152,12 +152,12 @@ def test_coupled_column_must_agree_and_fixed_rows_have_no_column(tree):
 def test_model_errors_name_the_field():
     doc = torso_two_arms()
     doc["joints"][5]["parent"] = "R4"  # listed after
-    doc["joints"][3]["coupled"] = {"T9": 1.0}
+    doc["joints"][3]["coupled"] = {"T9": 1.0, "T3": 1e200}  # 1e200: the drive's load overflowed into an SVD error
     doc["targets"][1]["parent"] = "nope"
     with pytest.raises(ModelError) as exc:
         parse_model(doc)
     fields = {e["field"] for e in exc.value.errors}
-    assert {"joints[5].parent", "joints[3].coupled.T9", "targets[1].parent"} <= fields
+    assert {"joints[5].parent", "joints[3].coupled.T9", "joints[3].coupled.T3", "targets[1].parent"} <= fields
 
 
 def test_tree_model_round_trips_through_contract_json(tree):
