@@ -20,7 +20,8 @@ import numpy as np
 from scipy.optimize import brentq
 
 from . import kinematics as K
-from .effects import Context, Effect, apply, effect_from_state, effect_state
+from .effects import (Backlash, Context, CyclicJointError, Effect, JointCompliance, JointScale, LoadCompliance, apply,
+                      effect_from_state, effect_state)
 from .identifiability import Identifiability, analyse, assess  # noqa: F401 (analyse: public re-export)
 from .io import DISTINCT_DECIMALS, Measurements
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, RobotModel
@@ -39,6 +40,23 @@ UNCERTAINTY_NOTE = ("std are 1-sigma of the estimates conditional on the identif
                     "(geometry plus the listed effects, noise weighted by the instrument's model and the fitted model "
                     "error); they do not cover errors of a structure the model lacks. null = not determined by "
                     "the data and the prior.")
+
+
+ON_DRIVES = "joint_causes_on_drives"
+"""Marker of a state saved since a joint-space cause on a coupled mechanism acts on its drive (docs/REAL_CELLS.md)."""
+
+
+class StaleState(ValueError):
+    """A stored calibration whose causes would now predict differently than when they were identified."""
+
+
+def _stale(model: RobotModel, effects: list[Effect]) -> str | None:
+    """The rows whose joint-space cause, saved before it acted on the drive, would now turn coupled rows too."""
+    moves = model.drive_motion()
+    rows = sorted({j for e in effects if isinstance(e, (JointCompliance, Backlash, CyclicJointError, JointScale,
+                                                        LoadCompliance))
+                   for j in e.joints if np.count_nonzero(moves[:, j]) > 1})
+    return ", ".join(model.joint_names[j] for j in rows) or None
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,7 +102,7 @@ class CalibratedRobot:
     def to_state(self) -> dict:
         """JSON-able state; `from_state(model, state)` restores it exactly."""
         out = {"x": self.x.tolist(), "R0": self.R0.tolist(),
-               "effects": [effect_state(e, v) for e, v in zip(self.effects, self.effect_values)]}
+               "effects": [effect_state(e, v) for e, v in zip(self.effects, self.effect_values)], ON_DRIVES: True}
         if self.x_basis is not None:
             out["x_basis"] = self.x_basis.tolist()
         if len(self.setup_names) > 1:
@@ -93,7 +111,14 @@ class CalibratedRobot:
 
     @classmethod
     def from_state(cls, model: RobotModel, state: dict) -> "CalibratedRobot":
+        """Raises StaleState for a state saved before a cause on a coupled mechanism acted on its drive, whose
+        causes sit on such a drive: restored now, it would predict otherwise than it was fitted."""
         effects = [effect_from_state(d) for d in state.get("effects", [])]
+        stale = None if state.get(ON_DRIVES) else _stale(model, [e for e, _ in effects])
+        if stale:
+            raise StaleState(f"this calibration was identified before a cause on a coupled mechanism acted on its "
+                             f"drive; its causes on {stale} would now also turn the coupled rows and predict "
+                             "otherwise than they were fitted: run the calibration job again")
         basis = state.get("x_basis")
         return cls(model, np.array(state["x"], float), np.array(state["R0"], float),
                    tuple(e for e, _ in effects), tuple(v for _, v in effects),

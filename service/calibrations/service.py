@@ -10,10 +10,11 @@ from sqlalchemy.orm import Session, object_session
 from calib_core.compensate import compensate as solve_compensation
 from calib_core.compensate import nominal_to_calibrated
 from calib_core.effects.base import unloaded
-from calib_core.identify import CalibratedRobot
+from calib_core.identify import CalibratedRobot, StaleState
 from calib_core.io import MAX_TAU, Measurements
 from calib_core.model import (ANGLE_TO_RAD, JOINT_MARGIN_FRACTION, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM,
-                               MAX_REVOLUTE_DEG, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC)
+                               MAX_REVOLUTE_DEG, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC,
+                               RobotModel)
 
 from ..problems import MAX_ERRORS, ProblemError, get_or_404
 from ..report import decorate
@@ -26,6 +27,15 @@ from .models import Calibration
 
 def get_calibration(s: Session, cal_id: str) -> Calibration:
     return get_or_404(s, Calibration, cal_id, "calibration")
+
+
+def restored(model: RobotModel, c: Calibration) -> CalibratedRobot:
+    """The stored calibration for prediction; a 409 when it was saved before its causes' meaning changed (a cause
+    on a coupled mechanism now acts on its drive), rather than a number it was not fitted to give."""
+    try:
+        return CalibratedRobot.from_state(model, c.robot_state)
+    except StaleState as exc:
+        raise ProblemError(409, str(exc), kind="stale-calibration") from None
 
 
 def answer(c: Calibration) -> dict:
@@ -253,7 +263,7 @@ def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temp
     torques, hidden = _tau(model, tau, len(joints), errors)
     _reject("the request does not fit the robot model", errors, more + hidden)
     q = model.expand_joints(np.asarray(joints, float) * model.joint_scale()[model.actuated])
-    robot = CalibratedRobot.from_state(model, c.robot_state)
+    robot = restored(model, c)
     load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (len(q),)).copy()
     columns = Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load, temperature=temp,
                            timestamp=stamps, target=tix, setup=six, setup_names=robot.setup_names, tau=torques)
@@ -294,7 +304,7 @@ def compensate(s: Session, c: Calibration, body) -> dict:
     torques, hidden = _tau(model, body.tau, len(rows or []), errors)
     _reject("the request does not fit the robot model", errors, more + hidden)
     q = np.asarray(rows, float).reshape(-1, n) * model.joint_scale()[model.actuated]
-    robot = CalibratedRobot.from_state(model, c.robot_state)
+    robot = restored(model, c)
     columns = Measurements(joints=model.expand_joints(q), points=np.zeros((len(q), 3)),
                            payload=None if body.payload is None else np.full(len(q), body.payload),
                            target=tix, setup=six, setup_names=robot.setup_names, tau=torques)

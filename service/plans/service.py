@@ -17,6 +17,7 @@ from calib_core.model import LENGTH_TO_MM, MAX_POINT_MM, RobotModel
 from calib_core.plan import Plan, lookalike_pairs, plan, tracker_of
 
 from ..calibrations.models import Calibration
+from ..calibrations.service import restored
 from ..db import Database
 from ..measurements.models import MeasurementSet
 from ..measurements.service import parse_or_reject
@@ -94,7 +95,7 @@ def _rivals(model: RobotModel, meas: Measurements, cal: Calibration, robot: Cali
 def make_plan(db: Database, robot_id: str, body: PlanIn) -> dict:
     """The plan answer (contract section 5): poses in model units, actuated joint order, and their observability."""
     model, meas, cal = _load(db, robot_id, body)
-    robot = None if cal is None else CalibratedRobot.from_state(model, cal.robot_state)
+    robot = None if cal is None else restored(model, cal)
     rivals = _rivals(model, meas, cal, robot, body.measurement_set_id) if body.purpose == "diagnosis" else ()
     tracker = _tracker_mm(model, body, meas, robot)
     try:

@@ -200,3 +200,41 @@ def test_bad_torques_are_422_naming_row_column_and_value(server, torque_cell):
     body = assert_problem(server.client.post(f"/calibrations/{cal}/compensate", json={
         "program_joints": joints, "tau": {"tau_A2": "12"}}), 422)  # a string is not a number
     assert any("tau" in str(e.get("field", "")) for e in body["errors"]), body
+
+
+def test_a_calibration_saved_before_causes_acted_on_drives_is_refused_not_served(server):
+    """Since 005b235 a cause on T2 (which T4 follows) also turns T4, with the drive's load. A stored calibration
+    saved before, with such a cause, would predict otherwise than it was fitted: predict and compensate answer 409
+    naming the rows and what to do (plan restores it the same way). The same state with the marker predicts; an old state without causes on a
+    drive predicts as before."""
+    import json
+    import sqlite3
+
+    from calib_core.effects import JointCompliance, effect_state
+    from calib_core.identify import ON_DRIVES
+
+    doc = torso_two_arms()
+    model = parse_model(doc)
+    twin = Twin(model, seed=32)
+    cal = _calibrated(server, doc, model, twin.measure(n=60), "stale.csv", "geometric", 120)["calibration_id"]
+
+    def stored(edit):
+        with sqlite3.connect(server.db_path) as c:
+            state = json.loads(c.execute("SELECT robot_state FROM calibrations WHERE id = ?", (cal,)).fetchone()[0])
+            edit(state)
+            c.execute("UPDATE calibrations SET robot_state = ? WHERE id = ?", (json.dumps(state), cal))
+
+    q = np.degrees(sample_uniform(model, 3, np.random.default_rng(6))[:, model.actuated]).tolist()
+    predict = lambda: server.client.post(f"/calibrations/{cal}/predict", json={"joints": q, "target": "left"})  # noqa: E731
+
+    stored(lambda s: s.pop(ON_DRIVES))  # an old state, no causes: served as before
+    assert predict().status_code == 200
+    t2 = model.joint_names.index("T2")
+    stored(lambda s: s["effects"].append(effect_state(JointCompliance((t2,)), np.array([1e-5]))))
+    body = assert_problem(predict(), 409)
+    assert "T2" in body["detail"] and "run the calibration job again" in body["detail"], body
+    body = assert_problem(server.client.post(f"/calibrations/{cal}/compensate",
+                                             json={"program_joints": q, "target": "left"}), 409)
+    assert "T2" in body["detail"]
+    stored(lambda s: s.update({ON_DRIVES: True}))
+    assert predict().status_code == 200
