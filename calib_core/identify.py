@@ -52,10 +52,9 @@ class StaleState(ValueError):
 
 def _stale(model: RobotModel, effects: list[Effect]) -> str | None:
     """The rows whose joint-space cause, saved before it acted on the drive, would now turn coupled rows too."""
-    moves = model.drive_motion()
     rows = sorted({j for e in effects if isinstance(e, (JointCompliance, Backlash, CyclicJointError, JointScale,
                                                         LoadCompliance))
-                   for j in e.joints if np.count_nonzero(moves[:, j]) > 1})
+                   for j in e.joints if len(model.followers(j))})
     return ", ".join(model.joint_names[j] for j in rows) or None
 
 

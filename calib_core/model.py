@@ -268,6 +268,11 @@ class RobotModel:
             M[:, self.actuated] = self.coupling_matrix()
         return M
 
+    def followers(self, j: int) -> np.ndarray:
+        """The coupled rows that row j's drive turns with it (drive_motion), itself excluded."""
+        moved = np.flatnonzero(self.drive_motion()[:, j])
+        return moved[moved != j]
+
     @property
     def has_mass(self) -> bool:
         return self.mass is not None

@@ -34,9 +34,8 @@ def _load_unit(model: RobotModel, j: int) -> str:
 
 
 def _followers(model: RobotModel, joints) -> str:
-    """", turning X with it" for the coupled rows the joints' drives move (Context.moves), else ""."""
-    moves = model.drive_motion()
-    rows = sorted({int(r) for j in joints for r in np.flatnonzero(moves[:, j]) if r != j} - set(joints))
+    """", turning X with it" for the coupled rows the joints' drives move (RobotModel.followers), else ""."""
+    rows = sorted({int(r) for j in joints for r in model.followers(j)} - set(joints))
     return f", turning {', '.join(model.joint_names[r] for r in rows)} with {'it' if len(joints) == 1 else 'them'}" \
         if rows else ""
 
