@@ -380,7 +380,8 @@ class ChainEvaluations:
 
 def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None,
          prior_scale: float = 1.0, *, evals: ChainEvaluations | None = None, covariance: bool = True,
-         damping: float = 1e-4, ftol: float = 1e-10, pose_noise: tuple[np.ndarray, float] | None = None) -> Solution:
+         damping: float = 1e-4, ftol: float = 1e-10, pose_noise: tuple[np.ndarray, float] | None = None,
+         max_iter: int = 100) -> Solution:
     """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian.
 
     `pose_noise` (Z (N, 3, U) mm per unit, tau): a motion the targets of one pose share (the joints upstream of
@@ -392,7 +393,8 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
 
     `start` (default: nominal) is where LM begins; the optimum does not depend on it beyond the convergence
     tolerance. Geometric fits (no bases) may take memoised `evals` of meas's poses; `covariance=False` skips the
-    covariance; `damping` is LM's initial damping (small for a start near the optimum)."""
+    covariance; `damping` is LM's initial damping (small for a start near the optimum); `max_iter=0` takes the
+    covariance at `start` itself."""
     q, y, labels = meas.joints, meas.points, meas.labels
     p_geo = len(idx)
     K_eff = 0 if bases is None else bases[0].shape[2]
@@ -419,7 +421,7 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
     nominal, prior = _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior, K_eff)
     if Z is None:
         return least_squares(residual_jac, nominal if start is None else start, sigma, loss=loss,
-                             covariance=covariance, damping=damping, ftol=ftol, **prior)
+                             covariance=covariance, damping=damping, ftol=ftol, max_iter=max_iter, **prior)
     P, U = p_geo + K_eff, Z.shape[2]
     std = prior.get("prior_std", np.full(P, np.inf))
     prior = {"prior": np.r_[nominal, np.zeros(U)], "prior_std": np.r_[std, np.full(U, pose_noise[1])]}
@@ -685,14 +687,17 @@ def held_out(model, meas, x0, evals: ChainEvaluations, models: list[Folds], fold
 
 def widened_cov(cal: Calibration, meas: Measurements, extra: list[Effect], loss: str | None) -> np.ndarray:
     """Covariance over [x[free], effect parameters, the parameters of `extra`] of `cal`'s fit on `meas` with the
-    `extra` effects freed beside it: the same weights, prior and variance factor. The calibration's doubt when
-    something fixed in its model (mass data identified from these same poses) was estimated too."""
+    `extra` effects freed beside it: the same weights, prior and variance factor, linearised at `cal`'s estimate
+    (the extra parameters at zero), so its block of `cal`'s parameters is never narrower than `cal`'s own (a
+    Schur complement). The calibration's doubt when something fixed in its model (mass data identified from these
+    same poses) was estimated too. Refitted to the widened optimum instead, a prediction std narrowed by up to 8 %
+    on one test world in ten."""
     effects = list(cal.effects) + list(extra)
     bases = effect_bases(cal.model, meas, effects, cal.x if cal.x_basis is None else cal.x_basis, cal.R0)
     x0, _ = prealign(cal.model, meas)
     start = np.r_[cal.solution.x, np.zeros(bases[0].shape[2] + len(cal.free) - len(cal.solution.x))]
     sol = _fit(cal.model, meas, cal.sigma_mm, x0, cal.R0, cal.free, loss, True, bases,
-               _effect_prior(cal.model, effects), start=start, prior_scale=cal.prior_scale)
+               _effect_prior(cal.model, effects), start=start, prior_scale=cal.prior_scale, max_iter=0)
     return sol.cov * (cal.solution.s2 / sol.s2)
 
 

@@ -127,13 +127,14 @@ def test_mass_data_are_identified_under_the_compliances(seed):
 
 
 def _assert_mass_doubt_widens(cal, fit, seed):
-    """The mass data's doubt is set on `cal` and widens its prediction std at fresh poses, never narrows them."""
+    """The mass data's doubt is set on `cal` and widens its prediction std at fresh poses, never narrows them (taken
+    at the calibration's own estimate, a Schur complement: refitted, they narrowed by up to 8 %, seed 43)."""
     fresh, *_ = _poses(seed + 1, 100)
     sure = prediction_std_mm(cal, fresh.joints, fresh)
     DG._with_mass_doubt(cal, fit, TREE)
     assert cal.mass_doubt, "the compliances' mass data carry their doubt"
     doubted = prediction_std_mm(cal, fresh.joints, fresh)
-    assert (doubted >= 0.98 * sure).all() and doubted.mean() > 1.05 * sure.mean(), (sure.mean(), doubted.mean())
+    assert (doubted >= 0.999 * sure).all() and doubted.mean() > 1.05 * sure.mean(), (sure.mean(), doubted.mean())
 
 
 def test_the_models_own_mass_data_carry_their_doubt_too(seed):
@@ -153,9 +154,10 @@ def test_gravity_direction_is_identified_with_the_mass_data(seed):
     """A base frame 10-30 mrad off level (the world's gravity tilted against the model's base z, about a drawn axis):
     on the model's gravity a pitch joint's large torque leaks into the bending moments across it as a load-shaped
     error. The mass steps identify the direction too: it lands within a third of the tilt of the truth, the error on
-    fresh poses at least halves, and the note gives the tilt found. On 2 of 3 drawn worlds: on about one in 30
-    (seed 125 of 100-130) the first step trades the tilt for the first moments and the steps stop there, a local
-    minimum of the bilinear fit (0.090 -> 0.067 mm, not the noise's 0.009)."""
+    fresh poses at least halves, and the note gives the tilt found. On 2 of 3 drawn worlds. From the model's gravity
+    alone, on about one in 30 (seed 125 of 100-130) the first step traded the tilt for the first moments and stopped
+    in a local minimum of the bilinear fit (0.090 -> 0.067 mm, not the noise's 0.009); the second start, gravity's
+    direction first, reaches it (0 of 61 stalls on seeds 100-160)."""
     from calib_core.effects.gravity import tilted
 
     angle = lambda a, b: float(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))  # noqa: E731
