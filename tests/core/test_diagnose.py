@@ -171,6 +171,7 @@ def test_hidden_cause_is_found_blind(kind, seed):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", OFF_VOCABULARY)
 def test_cause_without_a_name_is_never_silent(kind, seed):
+    # CI seed 1449148170 (re-homing of J5): the step was placed 7 poses late, those poses flagged as outliers, z 10.8
     size = _size(seed)
     world, info, meas = _world(kind, size, seed)
     d = diagnose(SPRAY, meas)
