@@ -204,8 +204,8 @@ def test_bad_torques_are_422_naming_row_column_and_value(server, torque_cell):
 
 def test_a_calibration_saved_before_causes_acted_on_drives_is_refused_not_served(server):
     """Since 005b235 a cause on T2 (which T4 follows) also turns T4, with the drive's load. A stored calibration
-    saved before, with such a cause, would predict otherwise than it was fitted: predict and compensate answer 409
-    naming the rows and what to do (plan restores it the same way). The same state with the marker predicts; an old state without causes on a
+    saved before, with such a cause, would predict otherwise than it was fitted: predict, compensate and plan answer
+    409 naming the rows and what to do. The same state with the marker predicts; an old state without causes on a
     drive predicts as before."""
     import json
     import sqlite3
@@ -235,6 +235,10 @@ def test_a_calibration_saved_before_causes_acted_on_drives_is_refused_not_served
     assert "T2" in body["detail"] and "run the calibration job again" in body["detail"], body
     body = assert_problem(server.client.post(f"/calibrations/{cal}/compensate",
                                              json={"program_joints": q, "target": "left"}), 409)
+    assert "T2" in body["detail"]
+    info = server.client.get(f"/calibrations/{cal}").json()
+    body = assert_problem(server.client.post(f"/robots/{info['robot_id']}/plan", json={
+        "n_poses": 10, "purpose": "geometric", "measurement_set_id": info["measurement_set_id"]}), 409)
     assert "T2" in body["detail"]
     stored(lambda s: s.update({ON_DRIVES: True}))
     assert predict().status_code == 200
