@@ -31,7 +31,7 @@ from .effects.joint_effects import LOAD_DOUBT
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import at_gap, probes, session_clock, step_candidates
-from .identify import Calibration, effect_bases, identify, widened_cov
+from .identify import Calibration, _rms, effect_bases, identify, widened_cov
 from . import shared_motion
 from .select import select_geometry
 from .solve import OUTLIER_U
@@ -486,7 +486,7 @@ def _holdout_rms_every_pose(cal: Calibration) -> float:
     """Held-out RMS (mm) over every pose, the robust fit's outliers included: a step placed a few poses late makes
     the poses between outliers, which the inliers' RMS leaves out, so it looked better than the right place (a
     re-homing of J5 at P0090 placed after P0097, 7 poses flagged, fresh poses there 1 mm off: z 10.8)."""
-    return float(np.sqrt(np.mean(cal.holdout_residual_mm**2)))
+    return _rms(cal.holdout_residual_mm)
 
 
 def _refine_step(c, trial, chosen, model, meas, fit, x_ref):

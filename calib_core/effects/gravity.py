@@ -58,23 +58,21 @@ def gravity_regressor(chain, j: int, axis: np.ndarray | None = None, g: np.ndarr
 def drive_bodies(model, j: int) -> np.ndarray:
     """The bodies whose mass loads joint j's drive (statics.loads): those j carries and those the coupled rows
     its drive moves carry, in row order."""
-    moved = np.flatnonzero(model.drive_motion()[:, j])
-    return np.unique(np.concatenate([model.descendants(r) for r in moved]))
+    return np.unique(np.concatenate([model.descendants(r) for r in (j, *model.followers(j))]))
 
 
 def drive_regressor(chain, j: int, g: np.ndarray | None = None) -> np.ndarray:
     """gravity_regressor of the load on joint j's drive (N, m): its own, or where coupled rows follow the drive,
     the sum of theirs by their coefficients, on 4 columns per body of drive_bodies (a prismatic row's load has
     only the mass column)."""
-    moves = chain.model.drive_motion()[:, j]
-    moved = np.flatnonzero(moves)
-    if len(moved) == 1:
+    model = chain.model
+    if not len(model.followers(j)):
         return gravity_regressor(chain, j, None, g)
-    bodies = drive_bodies(chain.model, j)
+    moves, bodies = model.drive_motion()[:, j], drive_bodies(model, j)
     out = np.zeros((chain.N, 4 * len(bodies)))
-    for r in moved:
-        at = 4 * np.searchsorted(bodies, chain.model.descendants(r))
-        cols = at if chain.model.prismatic[r] else (at[:, None] + np.arange(4)).ravel()
+    for r in (j, *model.followers(j)):
+        at = 4 * np.searchsorted(bodies, model.descendants(r))
+        cols = at if model.prismatic[r] else (at[:, None] + np.arange(4)).ravel()
         out[:, cols] += moves[r] * gravity_regressor(chain, r, None, g)
     return out
 
