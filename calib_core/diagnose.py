@@ -22,8 +22,8 @@ import numpy as np
 from scipy import optimize, special, stats
 
 from . import kinematics as K
-from .effects import (Backlash, Context, Effect, JointCompliance, LoadCompliance, Probe, SessionStep, candidates,
-                      has_loads, loads)
+from .effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, Probe, SessionStep,
+                      candidates, has_loads, loads)
 from .effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJointCompliance, _as_tuple,
                               body_parameters, carried_columns, drive_payload_load, drive_regressor, lateral_axes,
                               load_mix_for, mass_step, tilted)
@@ -31,7 +31,7 @@ from .effects.joint_effects import LOAD_DOUBT
 from .kinematics import _cross
 from .effects.residual import PRIOR_STD_MM, ResidualField, fit_residual_field
 from .effects.structure import at_gap, probes, session_clock, step_candidates
-from .identify import Calibration, _rms, effect_bases, identify, widened_cov
+from .identify import Calibration, _rms, effect_bases, identify, widened
 from . import shared_motion
 from .select import select_geometry
 from .solve import OUTLIER_U
@@ -1505,16 +1505,17 @@ def _gravity(e: Effect | None, model: RobotModel) -> np.ndarray:
 
 
 def _with_mass_doubt(cal: Calibration, fit: _Fitter, model: RobotModel) -> None:
-    """Give `cal` the doubt of the mass data its compliances carry (identified from these poses, or the model's,
-    which may be 15 % off): one more mass step fitted beside the model, whose joint covariance the prediction std
-    propagates (uncertainty.prediction_cov). Without it the std are conditional on the masses, and too small where
-    the masses matter (the world's elastic bearings: prediction z 1.3-1.7)."""
-    idx = [i for i, e in enumerate(cal.effects) if _mass_driven(e)]
+    """Give `cal` the doubt of the mass data its compliances and bent links carry (identified from these poses, or
+    the model's, which may be 15 % off): one more mass step fitted beside the model, whose joint covariance and move
+    the prediction std propagate (uncertainty.prediction_cov). Without it the std are conditional on the masses, and
+    too small where the masses matter (the world's elastic bearings: prediction z 1.3-1.7)."""
+    idx = [i for i, e in enumerate(cal.effects) if _mass_driven(e) or isinstance(e, LinkDeflection)]
     if not idx or not model.has_mass:  # identified masses need the model's (they start from them)
         return
-    step = mass_step([(cal.effects[i], cal.effect_values[i]) for i in idx], model, _gravity(cal.effects[idx[0]], model))
+    driven = next((cal.effects[i] for i in idx if _mass_driven(cal.effects[i])), None)
+    step = mass_step([(cal.effects[i], cal.effect_values[i]) for i in idx], model, _gravity(driven, model))
     try:
-        cal.mass_doubt = (step, widened_cov(cal, fit.meas, [step], fit.loss))
+        cal.mass_doubt = (step, *widened(cal, fit.meas, [step], fit.loss))
     except (ValueError, np.linalg.LinAlgError):
         return
 

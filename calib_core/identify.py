@@ -153,7 +153,7 @@ class Calibration:
     unmodelled_mm: float = 0.0  # per-axis std of held-out structure no cause in the model explains (diagnose sets it)
     setup_names: tuple[str, ...] = ("",)  # one base pose per setup, in this order
     pose_index: np.ndarray | None = None  # (N,) the independent unit of each row (Measurements.pose_index)
-    mass_doubt: tuple = ()  # (MassStep, covariance over [x[free], effect parameters, its step]): see uncertainty.py
+    mass_doubt: tuple = ()  # (MassStep, covariance over [x[free], effect parameters, its step], move): uncertainty.py
 
     @property
     def warnings(self) -> list[str]:
@@ -685,20 +685,23 @@ def held_out(model, meas, x0, evals: ChainEvaluations, models: list[Folds], fold
     return out
 
 
-def widened_cov(cal: Calibration, meas: Measurements, extra: list[Effect], loss: str | None) -> np.ndarray:
-    """Covariance over [x[free], effect parameters, the parameters of `extra`] of `cal`'s fit on `meas` with the
-    `extra` effects freed beside it: the same weights, prior and variance factor, linearised at `cal`'s estimate
-    (the extra parameters at zero), so its block of `cal`'s parameters is never narrower than `cal`'s own (a
-    Schur complement). The calibration's doubt when something fixed in its model (mass data identified from these
-    same poses) was estimated too. Refitted to the widened optimum instead, a prediction std narrowed by up to 8 %
-    on one test world in ten."""
+def widened(cal: Calibration, meas: Measurements, extra: list[Effect], loss: str | None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """`cal`'s fit on `meas` with the `extra` effects freed beside it (the same weights, prior and variance factor):
+    its covariance over [x[free], effect parameters, the parameters of `extra`], and the move of those parameters
+    from `cal`'s estimate (the extra ones at zero) to the widened optimum. The calibration's doubt when something
+    fixed in its model (mass data, the model's or identified from these same poses) may be off. The covariance is
+    linearised at `cal`'s estimate, so its block of `cal`'s parameters is never narrower than `cal`'s own (a Schur
+    complement); refitted to the widened optimum instead, a prediction std narrowed by up to 8 % on one test world
+    in ten."""
     effects = list(cal.effects) + list(extra)
     bases = effect_bases(cal.model, meas, effects, cal.x if cal.x_basis is None else cal.x_basis, cal.R0)
     x0, _ = prealign(cal.model, meas)
     start = np.r_[cal.solution.x, np.zeros(bases[0].shape[2] + len(cal.free) - len(cal.solution.x))]
-    sol = _fit(cal.model, meas, cal.sigma_mm, x0, cal.R0, cal.free, loss, True, bases,
-               _effect_prior(cal.model, effects), start=start, prior_scale=cal.prior_scale, max_iter=0)
-    return sol.cov * (cal.solution.s2 / sol.s2)
+    fit = functools.partial(_fit, cal.model, meas, cal.sigma_mm, x0, cal.R0, cal.free, loss, True, bases,
+                            _effect_prior(cal.model, effects), start=start, prior_scale=cal.prior_scale)
+    here, there = fit(max_iter=0), fit(covariance=False)
+    return here.cov * (cal.solution.s2 / here.s2), there.x - start
 
 
 def evaluate(cal: Calibration | CalibratedRobot, meas: Measurements) -> dict:

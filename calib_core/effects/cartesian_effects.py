@@ -34,34 +34,56 @@ class LinkDeflection(Effect):
 
     def basis(self, ctx: Context) -> Basis:
         k = self.joints[0]
-        ch, m = ctx.chain, ctx.model
-        start, end, L = segment(ch, k)
-        u = (end - start) / np.maximum(L, 1e-9)[:, None]
-        g = np.broadcast_to(gravity_world(ch), u.shape)
-        # every body beyond the link and the payload, each acting at its station along the beam
-        carried = m.descendants(k)
-        pts = np.concatenate([com_world(ch)[carried], ch.p[None]], axis=0)  # (b, N, 3) mm
-        mass = np.concatenate([np.broadcast_to(m.mass[carried, None], (len(carried), len(L))),
-                               (ctx.meas.payload_kg() * ch.on_path[k])[None]], axis=0)  # (b, N) kg
-        F = mass[..., None] * g  # N
-        station = np.clip(((pts - start) * u).sum(-1), 0.0, L)  # (b, N) mm
-        Mo = _cross(pts - (start + station[..., None] * u), F)  # N*mm, the moment of the load's offset
-        perp = lambda v: v - (v * u).sum(-1, keepdims=True) * u  # noqa: E731
-        Fp, Mp, s = perp(F), perp(Mo), station[..., None]
-        L1 = L[:, None]
-        defl = (Fp * s**2 * (3 * L1 - s) / 6 + _cross(Mp, u) * s * (2 * L1 - s) / 2).sum(0)
-        turn = (_cross(u, Fp) * s**2 / 2 + Mp * s).sum(0)
-        lever = ch.p - end
-        carried = defl + _cross(turn, lever)
-        par = m.parents[k]
-        W = perp((m.mass[par] if par >= 0 else 0.0) * g)  # the segment's own body, spread evenly
-        own = W * L1**3 / 8 + _cross(_cross(u, W) * L1**2 / 6, lever)
-        on = ch.on_path[k][:, None]  # a link off the way to the pose's target moves what it carries, not the target
+        carried, own = bending(ctx.chain, k, ctx.meas.payload_kg())
+        on = ctx.chain.on_path[k][:, None]  # a link off the way to the pose's target moves what it carries, not it
         return Basis(None, np.stack([carried * on, own * on], axis=2), np.linalg.norm(carried + own, axis=1),
-                     f"bending of the link ending at {m.joint_names[k]} per unit 1/(EI) (mm*N*mm^2)")
+                     f"bending of the link ending at {ctx.model.joint_names[k]} per unit 1/(EI) (mm*N*mm^2)")
+
+    def displacement(self, ctx: Context, values: np.ndarray, phi: np.ndarray | None = None,
+                     g: np.ndarray | None = None) -> np.ndarray:
+        """Tool displacement (N, 3) mm at compliances `values`, under mass data `phi` and gravity `g` (bending)."""
+        k = self.joints[0]
+        carried, own = bending(ctx.chain, k, ctx.meas.payload_kg(), phi, g)
+        return (carried * values[0] + own * values[1]) * ctx.chain.on_path[k][:, None]
 
     def explain(self, model):
         return f"the link ending at {model.joint_names[self.joints[0]]} bends under its own weight and what it carries"
+
+
+def bending(ch, k: int, payload_kg: np.ndarray, phi: np.ndarray | None = None, g: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Displacement (N, 3) mm of the tool point per unit 1/(EI) of the link ending at row k (LinkDeflection), when
+    the link is on the way to it: under what the link carries, and under its own weight. `phi` (n, 4): mass (kg) and
+    first moment m*c (kg*mm, body frame) instead of the model's mass data; `g` (3,) m/s^2 in the base frame instead
+    of the model's gravity (the mass step differentiates the bending in both)."""
+    m = ch.model
+    start, end, L = segment(ch, k)
+    u = (end - start) / np.maximum(L, 1e-9)[:, None]
+    g = np.broadcast_to(gravity_world(ch, g), u.shape)
+    # every body beyond the link and the payload, each acting at its station along the beam
+    carried = m.descendants(k)
+    if phi is None:
+        mass_k, com = m.mass, com_world(ch)
+    else:
+        mass_k = phi[:, 0]
+        lever = phi[:, 1:] / np.where(mass_k > 0, mass_k, 1.0)[:, None]
+        com = ch.o_beta + np.einsum("jnab,jb->jna", ch.R, lever)
+    pts = np.concatenate([com[carried], ch.p[None]], axis=0)  # (b, N, 3) mm
+    mass = np.concatenate([np.broadcast_to(mass_k[carried, None], (len(carried), len(L))),
+                           (payload_kg * ch.on_path[k])[None]], axis=0)  # (b, N) kg
+    F = mass[..., None] * g  # N
+    station = np.clip(((pts - start) * u).sum(-1), 0.0, L)  # (b, N) mm
+    Mo = _cross(pts - (start + station[..., None] * u), F)  # N*mm, the moment of the load's offset
+    perp = lambda v: v - (v * u).sum(-1, keepdims=True) * u  # noqa: E731
+    Fp, Mp, s = perp(F), perp(Mo), station[..., None]
+    L1 = L[:, None]
+    defl = (Fp * s**2 * (3 * L1 - s) / 6 + _cross(Mp, u) * s * (2 * L1 - s) / 2).sum(0)
+    turn = (_cross(u, Fp) * s**2 / 2 + Mp * s).sum(0)
+    lever_tool = ch.p - end
+    par = m.parents[k]
+    W = perp((mass_k[par] if par >= 0 else 0.0) * g)  # the segment's own body, spread evenly
+    own = W * L1**3 / 8 + _cross(_cross(u, W) * L1**2 / 6, lever_tool)
+    return defl + _cross(turn, lever_tool), own
 
 
 def _legendre(s: np.ndarray, degrees) -> np.ndarray:

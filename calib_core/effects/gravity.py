@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 from ..kinematics import _cross
 from ..statics import gravity_moments, gravity_world
 from .base import Basis, Context, Effect, joint_basis
+from .cartesian_effects import LinkDeflection
 
 MAX_LOAD_TERMS = 6
 """At most this many regressor combinations per joint: a joint's gravity torque over a workspace is a few
@@ -352,8 +353,8 @@ TILT_STEP_RAD = 1e-6
 
 @dataclass(frozen=True)
 class MassStep(Effect):
-    """One Gauss-Newton step of the mass data under fixed compliances (never a reported cause): the
-    displacement of `causes` (joint and lateral compliances, fitted values `values`) per unit change of each
+    """One Gauss-Newton step of the mass data under fixed compliances (never a reported cause): the displacement
+    of `causes` (joint and lateral compliances, link bending; fitted values `values`) per unit change of each
     body's mass and first moment, and of the two tilts of gravity (its direction in the base frame,
     `gravity`). Deflection = compliance x load(mass, gravity) is bilinear; fitting this beside the causes
     themselves is the step."""
@@ -383,6 +384,9 @@ class MassStep(Effect):
         g = np.asarray(self.gravity, float)
         for effect, values in self.causes:
             v = np.asarray(values, float)
+            if isinstance(effect, LinkDeflection):
+                bp += self._bending_columns(ctx, effect, v, g)
+                continue
             for t, j in enumerate(effect.joints):
                 src, dst = self._columns(model, j)
                 if isinstance(effect, LateralJointCompliance):
@@ -401,6 +405,27 @@ class MassStep(Effect):
                 bq[:, :, P + i] += (turned_q - here_q) @ v / TILT_STEP_RAD
                 bp[:, :, P + i] += (turned_p - here_p) @ v / TILT_STEP_RAD
         return Basis(bq, bp, np.zeros(N), "mass data")
+
+    def _bending_columns(self, ctx: Context, effect: LinkDeflection, v: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """(N, 3, P + 2): a link's bending per unit change of the mass data of each body it carries or is (central
+        differences: the bodies' stations along the beam move with their centres of mass) and of gravity's tilts."""
+        model = ctx.model
+        phi0, step = body_parameters(model), 1e-3 * self.prior_std
+        k = effect.joints[0]
+        touched = set(model.descendants(k).tolist()) | {int(model.parents[k])}
+        out = np.zeros((len(ctx.meas.joints), 3, len(step)))
+        for i, b in enumerate(self.bodies):
+            for c in range(4) if b in touched else ():
+                up, down = phi0.copy(), phi0.copy()
+                up[b, c] += step[4 * i + c]
+                down[b, c] -= step[4 * i + c]
+                out[:, :, 4 * i + c] = (effect.displacement(ctx, v, up, g) - effect.displacement(ctx, v, down, g)
+                                        ) / (2 * step[4 * i + c])
+        here = effect.displacement(ctx, v, phi0, g)
+        for i in range(2):
+            turned = effect.displacement(ctx, v, phi0, tilted(g, TILT_STEP_RAD * np.eye(2)[i]))
+            out[:, :, -2 + i] = (turned - here) / TILT_STEP_RAD
+        return out
 
     def _columns(self, model, j: int) -> tuple[np.ndarray, np.ndarray]:
         """Joint j's drive regressor columns (drive_regressor: 4 per body of drive_bodies) of the bodies this step
