@@ -7,8 +7,7 @@ import numpy as np
 from calib_core import diagnose as DG
 from calib_core import kinematics as K
 from calib_core.effects import (Backlash, Context, JointCompliance, LateralJointCompliance, LinkDeflection, candidates,
-                                effect_from_state,
-                                effect_state)
+                                effect_from_state, effect_state)
 from calib_core.effects.gravity import (TILT_PRIOR_RAD, body_parameters, gravity_regressor, lateral_axes, mass_step,
                                        payload_load)
 from calib_core.effects.joint_effects import PLAY_PRIOR_MM, PLAY_PRIOR_RAD
