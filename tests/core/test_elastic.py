@@ -171,7 +171,9 @@ def test_the_models_own_mass_data_carry_their_doubt_too(seed):
 def test_a_bent_links_mass_columns_add_up_to_its_bending(seed):
     """A link's bending is homogeneous of degree one in the mass data (each body's weight at its fixed centre of
     mass): the mass step's columns for it, weighted by the mass data themselves, give back the bending under the
-    bodies' weight (no payload), on every link of the tree that has one."""
+    bodies' weight (no payload), on every link of the tree that has one. To 1 %, not to rounding: a body whose centre
+    projects within a difference step of a beam's end is clamped there on one side of the step (a kink), which
+    leaves up to 4.4e-4 of the bending on 25 drawn seeds (1e-7 without the clamp); wrong columns are off by O(1)."""
     meas, _, _, ch = _poses(seed, 30)
     meas = dataclasses.replace(meas, payload=np.zeros(meas.n_poses))
     ctx = Context(TREE, ch, meas)
@@ -185,7 +187,8 @@ def test_a_bent_links_mass_columns_add_up_to_its_bending(seed):
             continue
         step = mass_step([(e, v)], TREE, TREE.gravity)
         cols = step.basis(ctx).dense(TREE.n_joints, len(step.prior))[1]
-        assert np.allclose(cols[:, :, :-2] @ phi[list(step.bodies)].ravel(), want, atol=1e-6 * np.abs(want).max())
+        got = cols[:, :, :-2] @ phi[list(step.bodies)].ravel()
+        assert np.allclose(got, want, rtol=0, atol=1e-2 * np.abs(want).max()), (k, np.abs(got - want).max())
 
 
 def test_a_bent_link_carries_the_doubt_of_the_mass_data_it_bends_under(seed):
