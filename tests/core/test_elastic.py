@@ -206,7 +206,9 @@ def test_a_bent_link_carries_the_doubt_of_the_mass_data_it_bends_under(seed):
     truth = world.predict(meas.joints, meas)
     meas = dataclasses.replace(meas, points=truth + rng.normal(0, 0.01, truth.shape), sigma=np.full(200, 0.01))
     fit = DG._Fitter(TREE, meas, None, 5, None, 1.0)
-    _assert_mass_doubt_widens(fit([e]), fit, seed)
+    cal = fit([e])
+    _assert_mass_doubt_widens(cal, fit, seed)
+    assert [c for c, _ in cal.mass_doubt[0].causes] == [e], "the mass step carries the bent link"
 
 
 def test_gravity_direction_is_identified_with_the_mass_data(seed):
