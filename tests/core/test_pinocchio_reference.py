@@ -401,12 +401,13 @@ class Completeness:
     form: str = ""
 
 
-def completeness(case: Case, n: int = 300, n_test: int = 100, seed: int = 0) -> Completeness:
+def completeness(case: Case, n: int = 300, n_test: int = 100, seed: int = 0, max_mm: float = 0.5,
+                 max_mrad: float = 1.0) -> Completeness:
     """Fit the nominal model to noise-free points of the perturbed URDF (pinocchio's), tracker frame random."""
     text = urdf_text(case.file)
     doc = model_doc(case, text, SMR_MM if case.smr_known else np.zeros(3))
     model = parse_model(doc)
-    truth = PinRobot(perturbed_urdf(text, seed, error=case.error))
+    truth = PinRobot(perturbed_urdf(text, seed, max_mm, max_mrad, error=case.error))
     base = base_link_of(text, case)
     rng = np.random.default_rng(seed + 1)
     Rt = np.asarray(pin.exp3(rng.normal(size=3)))
