@@ -39,9 +39,9 @@ def _homogeneous(R, t):
 def per_pose_forward(model, x, q, R0):
     """Textbook forward kinematics: one 4x4 product per joint and pose, in Python loops."""
     n = model.n_joints
-    g = x[: 5 * n].reshape(n, 5)
-    base = _homogeneous(K.base_rotation(x[5 * n: 5 * n + 6], R0), x[5 * n: 5 * n + 3])
-    tool = np.r_[x[5 * n + 6:], 1.0]
+    g = x[: K.G * n].reshape(n, K.G)[:, :5]  # a plain MD-H chain: gamma and b stay 0
+    base = _homogeneous(K.base_rotation(x[K.G * n: K.G * n + 6], R0), x[K.G * n: K.G * n + 3])
+    tool = np.r_[x[K.G * n + 6:], 1.0]
     out = np.empty((len(q), 3))
     for k, qk in enumerate(q):
         T = base

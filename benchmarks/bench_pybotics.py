@@ -78,7 +78,7 @@ def pybotics_problem(pb, model, meas, free_names: list[str]):
     world = np.eye(4)
     world[:3, :3] = R0  # our base pose at the start is Trans(x0 base) R0 exactly; pybotics varies it as
     # absolute ZYX Euler angles (singular at ry = +-90 deg; seed 2023 gives ry = -48 deg)
-    world[:3, 3] = x0[5 * n: 5 * n + 3]
+    world[:3, 3] = x0[K.G * n: K.G * n + 3]
     robot.world_frame = world
     kc_mask = [False] * (4 * n)
     for name in free_names:

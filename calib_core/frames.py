@@ -90,9 +90,11 @@ def trans(x: float = 0.0, y: float = 0.0, z: float = 0.0) -> np.ndarray:
     return T
 
 
-def mdh_transform(a: float, alpha: float, d: float, theta: float, beta: float = 0.0) -> np.ndarray:
-    """One contract MD-H row as a 4x4: Rx(alpha) Tx(a) Rz(theta) Tz(d) Ry(beta) (joint value already added)."""
-    return rot_x(alpha) @ trans(a) @ rot_z(theta) @ trans(z=d) @ rot_y(beta)
+def mdh_transform(a: float, alpha: float, d: float, theta: float, beta: float = 0.0, gamma: float = 0.0,
+                  b: float = 0.0) -> np.ndarray:
+    """One contract MD-H row as a 4x4: Rx(alpha) Tx(a) Ry(gamma) Ty(b) Rz(theta) Tz(d) Ry(beta) (joint value already
+    added; gamma and b, model.GEOMETRIC's completing pair, are 0 in a plain MD-H row)."""
+    return rot_x(alpha) @ trans(a) @ rot_y(gamma) @ trans(y=b) @ rot_z(theta) @ trans(z=d) @ rot_y(beta)
 
 
 def nearest_rotation(T: Sequence) -> np.ndarray:

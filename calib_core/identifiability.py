@@ -2,8 +2,9 @@
 
 Column-normalised identification Jacobian, rank by SVD, then a greedy pivoted Gram-Schmidt in a
 preference order: base pose first (always unknown), then tool, then a, alpha, d, theta of every joint
-in chain order, and beta last, so that beta enters only where it is needed, which is at
-parallel axes (Hayati; Wang et al. 2023, section 4.2: beta instead of d).
+in chain order, then beta, so that beta enters only where it is needed, which is at
+parallel axes (Hayati; Wang et al. 2023, section 4.2: beta instead of d), and the completing pair gamma, b
+last (model.GEOMETRIC): a complete set per row, pruned here to a minimal one.
 
 `assess` adds what the pose set lacks: the parameters the model's structure can identify (on a rich random
 pose set within the joint limits, cached per model geometry) but this pose set cannot, and the joints that
@@ -76,13 +77,18 @@ class Identifiability:
 
 
 def preference_order(names: list[str]) -> list[int]:
-    """Base(s), target point(s), then the joint parameters in row order with every beta last."""
+    """Base(s), target point(s), then the classic MD-H parameters in row order, every beta after them and every
+    gamma and b (the completing pair, model.GEOMETRIC) last: a plain MD-H chain keeps exactly its classic set, and
+    the pair enters only where nothing before it can say the same (an xyz/rpy row, a tree's second branch)."""
     reg = ("base.", "base[", "tool.", "tool[")  # one base per setup, one point per target
     base = [i for i, s in enumerate(names) if s.startswith(reg[:2])]
     tool = [i for i, s in enumerate(names) if s.startswith(reg[2:])]
-    joint = [i for i, s in enumerate(names) if not s.startswith(reg) and not s.endswith(".beta")]
-    beta = [i for i, s in enumerate(names) if not s.startswith(reg) and s.endswith(".beta")]
-    return base + tool + joint + beta
+    rows = [i for i, s in enumerate(names) if not s.startswith(reg)]
+    late = (".beta", ".gamma", ".b")
+    joint = [i for i in rows if not names[i].endswith(late)]
+    beta = [i for i in rows if names[i].endswith(".beta")]
+    pair = [i for i in rows if names[i].endswith((".gamma", ".b"))]
+    return base + tool + joint + beta + pair
 
 
 def analyse(J: np.ndarray, names: list[str], order: list[int] | None = None) -> Identifiability:

@@ -24,7 +24,7 @@ from .effects import (Backlash, Context, CyclicJointError, Effect, JointComplian
                       effect_from_state, effect_state)
 from .identifiability import Identifiability, analyse, assess  # noqa: F401 (analyse: public re-export)
 from .io import DISTINCT_DECIMALS, Measurements
-from .model import ANGLE_TO_RAD, LENGTH_TO_MM, RobotModel
+from .model import ANGLE_TO_RAD, LENGTH_TO_MM, MDH, RobotModel
 from .solve import Solution, least_squares, lm_steps, solve_together
 
 WARM_DAMPING = 1e-9
@@ -44,6 +44,25 @@ UNCERTAINTY_NOTE = ("std are 1-sigma of the estimates conditional on the identif
 
 ON_DRIVES = "joint_causes_on_drives"
 """Marker of a state saved since a joint-space cause on a coupled mechanism acts on its drive (docs/REAL_CELLS.md)."""
+COMPLETE_ROWS = "geometry_per_row"
+"""Key of a state's geometric parameters per row (len(GEOMETRIC)); a state without it was saved with the 5 classic
+MD-H parameters per row, before gamma and b: restored with those two at 0, it predicts exactly as before."""
+
+
+def state_vector(model: RobotModel, state: dict, key: str = "x") -> np.ndarray | None:
+    """A stored state's parameter vector (`x` or `x_basis`) in today's layout: a state saved with 5 parameters per
+    row gets gamma = b = 0 inserted (the same kinematics, to the bit)."""
+    v = state.get(key)
+    if v is None:
+        return None
+    v = np.array(v, float)
+    per_row = int(state.get(COMPLETE_ROWS, len(MDH)))
+    if per_row != K.G:
+        n = model.n_joints
+        g = np.zeros((n, K.G))
+        g[:, :per_row] = v[: per_row * n].reshape(n, per_row)
+        v = np.concatenate([g.ravel(), v[per_row * n:]])
+    return v
 
 
 class StaleState(ValueError):
@@ -101,7 +120,8 @@ class CalibratedRobot:
     def to_state(self) -> dict:
         """JSON-able state; `from_state(model, state)` restores it exactly."""
         out = {"x": self.x.tolist(), "R0": self.R0.tolist(),
-               "effects": [effect_state(e, v) for e, v in zip(self.effects, self.effect_values)], ON_DRIVES: True}
+               "effects": [effect_state(e, v) for e, v in zip(self.effects, self.effect_values)], ON_DRIVES: True,
+               COMPLETE_ROWS: K.G}
         if self.x_basis is not None:
             out["x_basis"] = self.x_basis.tolist()
         if len(self.setup_names) > 1:
@@ -118,10 +138,9 @@ class CalibratedRobot:
             raise StaleState(f"this calibration was identified before a cause on a coupled mechanism acted on its "
                              f"drive; its causes on {stale} would now also turn the coupled rows and predict "
                              "otherwise than they were fitted: run the calibration job again")
-        basis = state.get("x_basis")
-        return cls(model, np.array(state["x"], float), np.array(state["R0"], float),
+        return cls(model, state_vector(model, state), np.array(state["R0"], float),
                    tuple(e for e, _ in effects), tuple(v for _, v in effects),
-                   None if basis is None else np.array(basis, float), tuple(state.get("setup_names", ("",))))
+                   state_vector(model, state, "x_basis"), tuple(state.get("setup_names", ("",))))
 
 
 def _columns(joints: np.ndarray, columns: Measurements | None) -> Measurements:
@@ -190,7 +209,7 @@ class Calibration:
             "base_pose": {"position_mm": pb.tolist(), "rotation_matrix": Rb.tolist()},
             **({"setups": [{"setup": name, "base_pose": {"position_mm": p.tolist(), "rotation_matrix": R.tolist()}}
                            for name, (R, p) in zip(self.setup_names, poses)]} if lay.n_setups > 1 else {}),
-            "calibrated_model": m.to_dict(self.x[lay.geometry].reshape(-1, 5), self.x[lay.tools].reshape(-1, 3)),
+            "calibrated_model": m.to_dict(self.x[lay.geometry].reshape(m.n_joints, -1), self.x[lay.tools].reshape(-1, 3)),
         }
 
     @property

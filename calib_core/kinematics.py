@@ -1,8 +1,10 @@
 """Forward kinematics and the analytic identification Jacobian, vectorised over N poses.
 
 The parameter vector x (mm, rad) is laid out as
-    [a, alpha, d, theta, beta] per row (5n), base [x, y, z, rx, ry, rz] per setup (6S), [x, y, z] per target (3T);
-a serial chain measured in one setup at one tool point has 5n + 9.
+    [a, alpha, d, theta, beta, gamma, b] per row (7n, model.GEOMETRIC), base [x, y, z, rx, ry, rz] per setup (6S),
+    [x, y, z] per target (3T);
+a serial chain measured in one setup at one tool point has 7n + 9. A row is
+``Rx(alpha) Tx(a) Ry(gamma) Ty(b) Rz(theta [+q]) Tz(d [+q]) Ry(beta)`` after its constant `pre` transform.
 The base pose of the robot in the measurement frame is Trans(x, y, z) R0 Rz(rz) Ry(ry) Rx(rx):
 R0 is a fixed reference rotation (from a rigid pre-alignment) so that the identified angles stay small.
 """
@@ -14,8 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import GEOMETRIC, RobotModel
+from .model import ANGULAR, GEOMETRIC, RobotModel
 
+G = len(GEOMETRIC)
+"""Geometric parameters per row."""
 BASE = ("x", "y", "z", "rx", "ry", "rz")
 TOOL = ("x", "y", "z")
 
@@ -37,7 +41,8 @@ class Labels:
 
 @dataclass(frozen=True)
 class Layout:
-    """Where each block sits in the parameter vector: 5 per row, 6 per setup's base, 3 per target."""
+    """Where each block sits in the parameter vector: G = len(GEOMETRIC) per row, 6 per setup's base, 3 per
+    target."""
 
     n: int
     n_setups: int
@@ -45,18 +50,18 @@ class Layout:
 
     @property
     def geometry(self) -> slice:
-        return slice(0, 5 * self.n)
+        return slice(0, G * self.n)
 
     def base(self, s: int = 0) -> slice:
-        return slice(5 * self.n + 6 * s, 5 * self.n + 6 * s + 6)
+        return slice(G * self.n + 6 * s, G * self.n + 6 * s + 6)
 
     def tool(self, t: int = 0) -> slice:
-        i = 5 * self.n + 6 * self.n_setups + 3 * t
+        i = G * self.n + 6 * self.n_setups + 3 * t
         return slice(i, i + 3)
 
     @property
     def bases(self) -> slice:
-        return slice(5 * self.n, 5 * self.n + 6 * self.n_setups)
+        return slice(G * self.n, G * self.n + 6 * self.n_setups)
 
     @property
     def tools(self) -> slice:
@@ -72,7 +77,7 @@ def layout(model: RobotModel, x_or_setups=1) -> Layout:
     T = model.n_targets
     if isinstance(x_or_setups, (int, np.integer)):
         return Layout(model.n_joints, int(x_or_setups), T)
-    S = (len(x_or_setups) - 5 * model.n_joints - 3 * T) // 6
+    S = (len(x_or_setups) - G * model.n_joints - 3 * T) // 6
     return Layout(model.n_joints, S, T)
 
 
@@ -88,7 +93,7 @@ def parameter_names(model: RobotModel, setups: tuple[str, ...] = ("",)) -> list[
 
 def angular_mask(model: RobotModel, n_setups: int = 1) -> np.ndarray:
     """True where a parameter is an angle (rad internally), False for lengths (mm)."""
-    per_joint = [p in ("alpha", "theta", "beta") for p in GEOMETRIC]
+    per_joint = [p in ANGULAR for p in GEOMETRIC]
     return np.array(per_joint * model.n_joints + ([False] * 3 + [True] * 3) * n_setups
                     + [False] * 3 * model.n_targets)
 
@@ -179,8 +184,8 @@ def _cross_into(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _row_parameters(g: np.ndarray) -> list[tuple]:
-    """Per row (a, alpha, d, theta, beta) from the geometry block (n, 5) of one parameter vector, as floats; of
-    B vectors (B, n, 5), a parameter equal in all of them is a float too, else its values as (B, 1) (they then
+    """Per row (a, alpha, d, theta, beta, gamma, b) from the geometry block (n, G) of one parameter vector, as
+    floats; of B vectors (B, n, G), a parameter equal in all of them is a float too, else its values as (B, 1) (they then
     broadcast against a batch of poses (3, B, N))."""
     if g.ndim == 2:
         return g.tolist()
@@ -290,11 +295,13 @@ class Chain:
             Rbase, obase = Rbase[..., None], obase[..., None]
         # per row, components first (n, 3, N): x axis / origin of frame i-1, z axis / origin after Tx(a), origin
         # after Tz(d); the rotation of each joint frame as its axes (n, 3, 3, N) [axis, component]; y_beta is its y
-        self._x_prev, self._o_prev, self._z_axis, self._o_theta, self._o_beta = np.empty((5, n, 3, *lead, N))
+        self._x_prev, self._o_prev, self._z_axis, self._o_theta, self._o_beta, self._y_prev = \
+            np.empty((6, n, 3, *lead, N))
         self._R = np.empty((n, 3, 3, *lead, N))
         self._y_beta = self._R[:, 1]
         qT = np.ascontiguousarray(q.T)  # (n, N): each row's values contiguous
-        for j, (a, alpha, d, theta, beta) in enumerate(_row_parameters(x[..., lay.geometry].reshape(*lead, n, 5))):
+        for j, (a, alpha, d, theta, beta, gamma, b) in enumerate(
+                _row_parameters(x[..., lay.geometry].reshape(*lead, n, G))):
             pj = st.parents[j]
             if pj < 0:
                 (X, Y, Z), o = Rbase, obase
@@ -316,6 +323,13 @@ class Chain:
             else:
                 z[...] = Z
             o1 = _step(self._o_theta[j], o, a, X)  # o + a x
+            if _moves(gamma):  # Ry(gamma): x and z turn about y
+                cg, sg = _cos_sin(gamma)
+                X, Z = X * cg - z * sg, X * sg + z * cg
+                z[...] = Z
+            self._y_prev[j] = Y
+            if _moves(b):  # + b y: the origin stays on the joint axis
+                o1 += b * Y
             if st.revolute_q[j]:
                 th = theta + qT[j]
                 c, s = np.cos(th), np.sin(th)
@@ -352,7 +366,8 @@ class Chain:
     x_prev = _PosesLayout(1)  # (n, N, 3) x axis of frame i-1 (after the row's constant transform)
     o_prev = _PosesLayout(1)  # (n, N, 3) origin of frame i-1, mm
     z_axis = _PosesLayout(1)  # (n, N, 3) joint axis z_i
-    o_theta = _PosesLayout(1)  # (n, N, 3) origin after Tx(a), on the joint axis, mm
+    y_prev = _PosesLayout(1)  # (n, N, 3) y axis about / along which gamma and b act
+    o_theta = _PosesLayout(1)  # (n, N, 3) origin after Tx(a) Ry(gamma) Ty(b), on the joint axis, mm
     y_beta = _PosesLayout(1)  # (n, N, 3) y axis about which beta turns
     o_beta = _PosesLayout(1)  # (n, N, 3) origin of frame i, mm
     R = _PosesLayout(1, 2)  # (n, N, 3, 3) rotation of each joint frame in the measurement frame
@@ -384,7 +399,7 @@ class Chain:
         else:
             out = np.empty((lay.size, N, 3))
             J = _first(out)
-        cols = J[:, : 5 * n].reshape(3, n, 5, *lead, N)
+        cols = J[:, : G * n].reshape(3, n, G, *lead, N)
         p = self._p[:, None]
         x_prev, z_axis = self._x_prev.swapaxes(0, 1), self._z_axis.swapaxes(0, 1)  # (3, n, N)
         cols[:, :, 0] = x_prev  # a_{i-1}: translation along x_{i-1}
@@ -392,6 +407,9 @@ class Chain:
         cols[:, :, 2] = z_axis  # d_i
         _cross_into(cols[:, :, 3], z_axis, p - self._o_theta.swapaxes(0, 1))  # theta_i
         _cross_into(cols[:, :, 4], self._y_beta.swapaxes(0, 1), p - self._o_beta.swapaxes(0, 1))  # beta_i
+        y_prev = self._y_prev.swapaxes(0, 1)
+        _cross_into(cols[:, :, 5], y_prev, p - self._o_theta.swapaxes(0, 1))  # gamma_i: about y, through the axis
+        cols[:, :, 6] = y_prev  # b_i: translation along y
         if not _static(self.model).serial:
             cols *= self.on_path.reshape(n, 1, *(1,) * len(lead), N)
         turns = np.array([axes for _, axes in self._frames]).reshape(*lead, lay.n_setups, 3, 3)

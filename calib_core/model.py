@@ -14,9 +14,16 @@ import numpy as np
 
 LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0}
 ANGLE_TO_RAD = {"deg": math.pi / 180.0, "rad": 1.0}
-GEOMETRIC = ("a", "alpha", "d", "theta", "beta")
-"""Per-joint MD-H parameters in the order of the parameter vector."""
-ANGULAR = {"alpha", "theta", "beta"}
+GEOMETRIC = ("a", "alpha", "d", "theta", "beta", "gamma", "b")
+"""Per-row geometric parameters in the order of the parameter vector: the MD-H row
+``Rx(alpha) Tx(a) Ry(gamma) Ty(b) Rz(theta [+q]) Tz(d [+q]) Ry(beta)``. `gamma` and `b` are the y-counterparts of
+`alpha` and `a` (zero in a plain MD-H row): with them the constant part of every row, before its joint moves, is a
+complete rigid transform (three turns and three shifts), so any error of any joint origin is absorbed whatever
+form the row was given in (xyz/rpy/axis rows, a tree's second branch, fixed rows); the identifiability analysis
+takes them only where the classic parameters cannot say the same (docs/REAL_CELLS.md, "Completeness")."""
+MDH = GEOMETRIC[:5]
+"""The classic MD-H (Hayati) parameters; `gamma` and `b` extend them."""
+ANGULAR = {"alpha", "theta", "beta", "gamma"}
 
 # Plausibility ranges at the input, in one place, internal units in the names.  Generous for any real cell
 # (a 100 m hall, a 10 t payload, a tracker to an interferometer), and a wall in front of the numerics: a finite
@@ -147,14 +154,14 @@ class ModelError(ValueError):
 class RobotModel:
     """A serial chain in MD-H form, internal units mm / rad.
 
-    `geometry` is (n, 5): a_{i-1}, alpha_{i-1}, d_i, theta_i, beta_i for each joint row.
+    `geometry` is (n, 7): a_{i-1}, alpha_{i-1}, d_i, theta_i, beta_i, gamma_i, b_i for each joint row (GEOMETRIC).
     `limits` are in joint units (rad for revolute, mm for prismatic).
     """
 
     name: str
     joint_names: tuple[str, ...]
     prismatic: np.ndarray  # (n,) bool
-    geometry: np.ndarray  # (n, 5)
+    geometry: np.ndarray  # (n, 7): GEOMETRIC
     limits: np.ndarray  # (n, 2)
     tool: np.ndarray  # (3,) mm, in the last joint frame
     gravity: np.ndarray  # (3,) m/s^2 in the robot base frame
@@ -311,7 +318,8 @@ class RobotModel:
                 row["axis"] = [float(v) for v in (self.align[j][:, 2] if self.align is not None else (0, 0, 1))]
             else:
                 for k, p in enumerate(GEOMETRIC):
-                    row[p] = float(g[j, k] / (an if p in ANGULAR else ls))
+                    if p in MDH or g[j, k] != 0.0:  # gamma and b only where a calibration (or the user) set them
+                        row[p] = float(g[j, k] / (an if p in ANGULAR else ls))
             if j in couple:
                 terms, off = couple[j]
                 row["coupled"] = {self.joint_names[src]: float(c * js[src] / js[j]) for src, c in terms}
@@ -489,10 +497,10 @@ def parse_model(doc: dict) -> RobotModel:
             origins.append(None)
             axes.append(None)
             for p in GEOMETRIC:
-                if p == "beta" and convention == "dh":
-                    if jd.get("beta", 0) not in (0, 0.0):
-                        errors.append({"field": f"{where}.beta", "value": jd.get("beta"),
-                                       "message": "standard DH has no beta; use convention 'mdh'"})
+                if p in ("beta", "gamma", "b") and convention == "dh":
+                    if jd.get(p, 0) not in (0, 0.0):
+                        errors.append({"field": f"{where}.{p}", "value": jd.get(p),
+                                       "message": f"standard DH has no {p}; use convention 'mdh'"})
                     row.append(0.0)
                     continue
                 v = _finite_number(errors, f"{where}.{p}", jd.get(p, 0.0))

@@ -735,20 +735,21 @@ def general_rows(model: RobotModel, geometry: np.ndarray | None = None, tools: n
     beta, acting in its joint frame) end up in its own origin and, for beta, in its children's origins and its
     targets, so the joints move about the same lines as in the calibrated model."""
     n = model.n_joints
-    g = model.geometry if geometry is None else np.asarray(geometry, float).reshape(n, 5)
+    g = model.geometry if geometry is None else np.asarray(geometry, float).reshape(n, -1)
     tl = model.target_points if tools is None else np.asarray(tools, float).reshape(-1, 3)
     A = np.broadcast_to(np.eye(3), (n, 3, 3)) if model.align is None else model.align
     H = np.zeros((n, 4, 4))
     H[:, :3, :3], H[:, 3, 3] = A, 1.0
     par = model.parents
-    # row j's full frame is F_par @ pre_j @ Rx(alpha) Tx(a) Rz(theta + q) Tz(d) Ry(beta) (calib_core.kinematics);
+    # row j's full frame is F_par @ pre_j @ Rx(alpha) Tx(a) Ry(gamma) Ty(b) Rz(theta + q) Tz(d) Ry(beta)
+    # (calib_core.kinematics);
     # its link frame is that frame before Ry(beta), turned back by the axis alignment: L_j = F_j Ry(-beta) H_j^T
     origins = np.empty((n, 4, 4))
     for j in range(n):
-        a, alpha, d, theta, _ = g[j]  # beta acts after the joint: in the children's origins and the targets
+        a, alpha, d, theta, _, gamma, b = g[j]  # beta acts after the joint: in the children's origins and targets
         pre = np.eye(4) if model.pre is None else model.pre[j]
         before = H[par[j]] @ rot_y(g[par[j], 4]) if par[j] >= 0 else np.eye(4)
-        origins[j] = before @ pre @ mdh_transform(a, alpha, d, theta) @ H[j].T
+        origins[j] = before @ pre @ mdh_transform(a, alpha, d, theta, gamma=gamma, b=b) @ H[j].T
     back = lambda j, v: A[j] @ (rot_y(g[j, 4])[:3, :3] @ v)  # noqa: E731  F_j coordinates -> L_j coordinates
     targets = np.array([back(r, t) for r, t in zip(model.target_rows, tl)])
     coms = None if model.com is None else np.array([back(j, c) for j, c in enumerate(model.com)])
@@ -786,12 +787,13 @@ def calibrated_model_dict(model: RobotModel, state: dict, source: dict | None = 
     the robot itself."""
     if not isinstance(state, dict):
         state = state.to_state()
+    from .identify import state_vector
     from .kinematics import base_rotation, layout
 
     n = model.n_joints
-    x = np.asarray(state["x"], float)
+    x = state_vector(model, state)
     lay = layout(model, x)
-    doc = model_dict(model, x[lay.geometry].reshape(n, 5), x[lay.tools].reshape(-1, 3))
+    doc = model_dict(model, x[lay.geometry].reshape(n, -1), x[lay.tools].reshape(-1, 3))
     if source and isinstance(source.get(EXTENSION), dict):
         doc[EXTENSION] = source[EXTENSION]
     ls = LENGTH_TO_MM[model.length_unit]
@@ -928,7 +930,7 @@ def _inputs(model):
         lay = layout(m, x)
         calib = {"effects": [{"kind": e.kind, "joints": [_joint_name(m, j) for j in e.joints]}
                              for e in getattr(model, "effects", ())]}
-        return m, x[lay.geometry].reshape(m.n_joints, 5), x[lay.tools].reshape(-1, 3), ext, calib
+        return m, x[lay.geometry].reshape(m.n_joints, -1), x[lay.tools].reshape(-1, 3), ext, calib
     raise TypeError("to_urdf takes a model dict, a RobotModel or a calibrated robot")
 
 
@@ -1051,8 +1053,8 @@ def _mdh_urdf(m: RobotModel, geometry, tool, ext: dict, calib: dict | None, rnam
         parent = child
     has_mass = m.mass is not None
     for j, jn in enumerate(m.joint_names):
-        a, alpha, d, theta, beta = (float(v) for v in geometry[j])
-        T = mdh_transform(a, alpha, d, theta)  # Ry(beta) follows as a fixed joint of its own
+        a, alpha, d, theta, beta, gamma, b = (float(v) for v in geometry[j])
+        T = mdh_transform(a, alpha, d, theta, gamma=gamma, b=b)  # Ry(beta) follows as a fixed joint of its own
         info = extra.get(jn) if isinstance(extra.get(jn), dict) else {}
         jtype, limit = _limit_tag(m, j, info, jn in continuous)
         child = w.link_name(f"{jn}_link")

@@ -152,7 +152,10 @@ class PhysicalRobot:
         self.names = tuple(model.joint_names)
         self.prismatic = np.asarray(model.prismatic, bool)
         self.limits = np.asarray(model.limits, float).copy()
-        g = np.asarray(model.geometry, float).copy()
+        if np.any(np.asarray(model.geometry, float)[:, 5:]):
+            raise ValueError("the simulated world builds MD-H rows (a, alpha, d, theta, beta); this model's rows carry "
+                             "gamma or b")
+        g = np.asarray(model.geometry, float)[:, :5].copy()
         scale = np.array([LENGTH_ERROR_MM, ANGLE_ERROR_RAD, LENGTH_ERROR_MM, ANGLE_ERROR_RAD, ANGLE_ERROR_RAD])
         err = rng.normal(size=(n, 5)) * scale * geometry_error
         err[~self.parallel_to_previous(), 4] = 0.0  # beta exists physically only between parallel axes

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..kinematics import _cross
+from ..model import ANGULAR, GEOMETRIC
 from ..statics import com_world, gravity_world, segment
 from .base import Basis, Context, Effect
 
@@ -185,7 +186,9 @@ class ThermalDrift(Effect):
         n, lay = chain.model.n_joints, chain.layout
         J = chain.jacobian()
         x = chain.x
-        lengths = np.r_[np.arange(0, 5 * n, 5), np.arange(2, 5 * n, 5), np.arange(lay.tools.start, lay.tools.stop)]
+        G = len(GEOMETRIC)
+        lengths = np.r_[[G * j + GEOMETRIC.index(p) for j in range(n) for p in GEOMETRIC if p not in ANGULAR],
+                        np.arange(lay.tools.start, lay.tools.stop)]
         return J[:, :, lengths] @ x[lengths]
 
     def explain(self, model):

@@ -15,7 +15,7 @@ def _compare(cal, twin):
     n = cal.model.n_joints
     z = {}
     for k, i in enumerate(cal.free):
-        if 5 * n + 3 <= i < 5 * n + 6:
+        if K.G * n + 3 <= i < K.G * n + 6:
             continue
         z[cal.names[i]] = (cal.x[i] - twin.x_true[i]) / cal.solution.std[k]
     return z
@@ -27,10 +27,10 @@ def test_exact_recovery_on_noise_free_twin(robot, seed):
     twin = Twin(model, seed, repeatability_mm=0.0, tracker_noise=False)
     cal = identify(model, twin.measure(n=150), regularize=False, folds=0)
     n = model.n_joints
-    assert np.abs(cal.x[: 5 * n] - twin.x_true[: 5 * n]).max() < 1e-7, f"seed {seed}"
-    assert np.abs(cal.x[5 * n + 6:] - twin.x_true[5 * n + 6:]).max() < 1e-7  # tool point
+    assert np.abs(cal.x[: K.G * n] - twin.x_true[: K.G * n]).max() < 1e-7, f"seed {seed}"
+    assert np.abs(cal.x[K.G * n + 6:] - twin.x_true[K.G * n + 6:]).max() < 1e-7  # tool point
     Rb, pb = cal.base_pose()
-    assert np.abs(Rb - twin.R0).max() < 1e-10 and np.abs(pb - twin.x_true[5 * n: 5 * n + 3]).max() < 1e-7
+    assert np.abs(Rb - twin.R0).max() < 1e-10 and np.abs(pb - twin.x_true[K.G * n: K.G * n + 3]).max() < 1e-7
     held_out = twin.measure(n=100)
     assert evaluate(cal, held_out)["max_mm"] < 1e-6
 
@@ -279,7 +279,7 @@ def test_prior_scale_pulls_toward_nominal(seed):
     np.testing.assert_array_equal(default.x, same.x)
     n = model.n_joints
     nominal = model.geometry.ravel()
-    assert np.abs(strong.x[: 5 * n] - nominal).max() < 0.2 * np.abs(default.x[: 5 * n] - nominal).max()
+    assert np.abs(strong.x[: K.G * n] - nominal).max() < 0.2 * np.abs(default.x[: K.G * n] - nominal).max()
 
 
 # --- refuse what cannot be calibrated, say what a poor pose set cannot tell -------------------------------

@@ -101,7 +101,7 @@ def _reference_points(model, x, q, R0s, labels):
         return T
 
     lay = K.layout(model, x)
-    g = x[lay.geometry].reshape(-1, 5)
+    g = x[lay.geometry].reshape(model.n_joints, K.G)
     out = np.empty((len(q), 3))
     for i in range(len(q)):
         s, t = (0, 0) if labels is None else (labels.setup[i], labels.target[i])
@@ -113,13 +113,14 @@ def _reference_points(model, x, q, R0s, labels):
             path.append(j)
             j = int(model.parents[j])
         for j in reversed(path):
-            a, alpha, d, theta, beta = g[j]
+            a, alpha, d, theta, beta, gamma, b_ = g[j]
             moves = not model.is_fixed[j]
             th = theta + (q[i, j] if moves and not model.prismatic[j] else 0.0)
             dd = d + (q[i, j] if moves and model.prismatic[j] else 0.0)
             if model.pre is not None:
                 T = T @ model.pre[j]
-            T = T @ rot("x", alpha) @ trans([a, 0, 0]) @ rot("z", th) @ trans([0, 0, dd]) @ rot("y", beta)
+            T = (T @ rot("x", alpha) @ trans([a, 0, 0]) @ rot("y", gamma) @ trans([0, b_, 0]) @ rot("z", th)
+                 @ trans([0, 0, dd]) @ rot("y", beta))
         out[i] = (T @ np.r_[x[lay.tool(t)], 1.0])[:3]
     return out
 
@@ -136,7 +137,7 @@ def test_chain_matches_a_product_of_transforms_on_chains_trees_and_setups(seed):
         lay = K.layout(model, S)
         x = K.nominal_vector(model, np.c_[rng.uniform(-2000, 2000, (S, 3)), rng.uniform(-0.3, 0.3, (S, 3))], S)
         x = x + rng.normal(0, 1e-2, len(x))
-        x[lay.geometry.start + 4: lay.geometry.stop: 5] += rng.normal(0, 0.01, model.n_joints)  # beta != 0
+        x[lay.geometry.start + 4: lay.geometry.stop: K.G] += rng.normal(0, 0.01, model.n_joints)  # beta != 0
         q = sample_uniform(model, 12, rng)
         labels = None
         R0 = K.base_rotation(np.r_[0, 0, 0, rng.uniform(-3, 3, 3)], np.eye(3))

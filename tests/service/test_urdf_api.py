@@ -64,7 +64,7 @@ def test_urdf_import_calibrate_export(server):
     cal_model = parse_model(cal_doc)
     assert cal_doc["joints"] != doc["joints"]  # the identified geometry, not the nominal
 
-    u = c.get(f"/calibrations/{cal_id}/urdf")
+    u = c.get(f"/calibrations/{cal_id}/urdf?form=rows")  # from the rows; the original patched: test_urdf_patch_api
     assert u.status_code == 200 and u.headers["content-type"].startswith("application/xml")
     back = parse_urdf(u.text)  # a single chain: the defaults find world -> tool0
     assert back["urdf"]["base_link"] == "world" and back["urdf"]["target_link"] == "tool0"
@@ -78,7 +78,7 @@ def test_urdf_import_calibrate_export(server):
     R, t = K.rigid_fit(p_cal, truth)
     assert np.abs(p_cal @ R.T + t - truth).max() < 1.0
     assert c.post("/robots", content=u.content, headers=XML).status_code == 201
-    assert c.get(f"/calibrations/{cal_id}/urdf").text == u.text
+    assert c.get(f"/calibrations/{cal_id}/urdf?form=rows").text == u.text
     assert c.get("/calibrations/nope/urdf").status_code == 404
 
 
@@ -99,7 +99,7 @@ def test_cli_import_and_export_urdf(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["units"] == {"length": "mm", "angle": "deg"}
 
     urdf = tmp_path / "out.urdf"
-    assert main(["export-urdf", str(out), "-o", str(urdf)]) == 0
+    assert main(["export-urdf", str(out), "-o", str(urdf), "--form", "rows"]) == 0
     assert parse_urdf(urdf.read_text())["joints"][0]["name"] == "track_joint"
     answer = {"calibrated_model": doc, "model": ["geometric", "backlash"],
               "diagnosis": {"findings": [{"kind": "backlash", "joints": ["elbow_joint"]}]}}
@@ -145,9 +145,9 @@ def test_urdf_tree_with_mimic_calibrates_and_exports(server, cell):
     # the robot as built: every row's constants off by 0.5 mm / 1 mrad, the targets by 2 mm, a base pose
     rng = np.random.default_rng(11)
     x_true = K.nominal_vector(model)
-    x_true[: 5 * n] += rng.normal(0.0, 1.0, 5 * n) * np.tile([0.5, 1e-3, 0.5, 1e-3, 1e-3], n)
-    x_true[5 * n: 5 * n + 6] = [1500.0, -800.0, 200.0, 0.01, -0.02, 0.7]
-    x_true[5 * n + 6:] += rng.normal(0.0, 2.0, 3 * T)
+    x_true[: K.G * n] += rng.normal(0.0, 1.0, K.G * n) * np.tile([0.5, 1e-3, 0.5, 1e-3, 1e-3, 1e-3, 0.5], n)
+    x_true[K.G * n: K.G * n + 6] = [1500.0, -800.0, 200.0, 0.01, -0.02, 0.7]
+    x_true[K.G * n + 6:] += rng.normal(0.0, 2.0, 3 * T)
 
     def poses(k: int):
         lim = model.limits[model.actuated].copy()
@@ -173,7 +173,7 @@ def test_urdf_tree_with_mimic_calibrates_and_exports(server, cell):
         assert a.get("coupled") == b.get("coupled") and a["type"] == b["type"]
     assert c.post("/robots", json=cal_doc).status_code == 201  # it posts back as a model
 
-    u = c.get(f"/calibrations/{cal_id}/urdf")
+    u = c.get(f"/calibrations/{cal_id}/urdf?form=rows")  # from the rows; the original patched: test_urdf_patch_api
     assert u.status_code == 200 and u.headers["content-type"].startswith("application/xml")
     assert "<mimic" in u.text and 'type="fixed"' in u.text
     back = parse_urdf(u.text, base, targets)  # the same base and target link names find the identified points
@@ -183,7 +183,7 @@ def test_urdf_tree_with_mimic_calibrates_and_exports(server, cell):
         expect = (child, f"{child}_parent") if child in targets.split(",") else (child,)
         assert back["urdf"]["links"][joint] in expect, (joint, back["urdf"]["links"][joint])
     assert c.post(f"/robots?base={base}&targets={targets}", content=u.content, headers=XML).status_code == 201
-    assert c.get(f"/calibrations/{cal_id}/urdf").text == u.text
+    assert c.get(f"/calibrations/{cal_id}/urdf?form=rows").text == u.text
 
     names = model.joint_names
 
