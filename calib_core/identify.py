@@ -51,14 +51,15 @@ MD-H parameters per row, before gamma and b: restored with those two at 0, it pr
 
 def state_vector(model: RobotModel, state: dict, key: str = "x") -> np.ndarray | None:
     """A stored state's parameter vector (`x` or `x_basis`) in today's layout: a state saved with 5 parameters per
-    row gets gamma = b = 0 inserted (the same kinematics, to the bit)."""
+    row (no COMPLETE_ROWS key; its length says so, its setups being known) gets gamma = b = 0 inserted (the same
+    kinematics, to the bit)."""
     v = state.get(key)
     if v is None:
         return None
     v = np.array(v, float)
-    per_row = int(state.get(COMPLETE_ROWS, len(MDH)))
-    if per_row != K.G:
-        n = model.n_joints
+    n, S = model.n_joints, len(state.get("setup_names", ("",)))
+    per_row = int(state.get(COMPLETE_ROWS, (len(v) - 6 * S - 3 * model.n_targets) // n))
+    if per_row == len(MDH):
         g = np.zeros((n, K.G))
         g[:, :per_row] = v[: per_row * n].reshape(n, per_row)
         v = np.concatenate([g.ravel(), v[per_row * n:]])
@@ -491,6 +492,44 @@ def prealign(model: RobotModel, meas: Measurements) -> tuple[np.ndarray, np.ndar
     return x, (R0[0] if S == 1 else R0)
 
 
+ON_AXIS_MM = 1.0
+"""A target whose nominal point lies this close to the joint axis it turns about (a URDF tool link's origin) is
+placed from the data before identifiability is judged: on the axis the last joint's a and alpha look confounded,
+although the real SMR is off the axis and identifies them."""
+
+
+def measured_targets(model: RobotModel, meas: Measurements, sigma: np.ndarray, x0: np.ndarray, R0
+                     ) -> tuple[np.ndarray, RobotModel]:
+    """Where to judge identifiability: x0 with the target points fitted to the data (base poses and points free,
+    geometry nominal; the fit itself still starts at x0) when a nominal
+    target lies within ON_AXIS_MM of the nearest moving row's joint axis, and the model with its targets there
+    (for the structural analysis); else x0 and the model unchanged. Identifiability is judged where the targets
+    really are, never at a point on a joint axis."""
+    lay = K.layout(model, x0)
+    ch = K.Chain(model, K.nominal_vector(model), np.zeros((1, model.n_joints)))
+    moving, par = model.moving, model.parents
+    on_axis = False
+    for r, t in zip(model.target_rows, model.target_points):
+        a = int(r)
+        while a >= 0 and not moving[a]:
+            a = int(par[a])
+        if a < 0:
+            continue
+        p = ch.o_beta[r, 0] + ch.R[r, 0] @ t
+        v = p - ch.o_theta[a, 0]
+        z = ch.z_axis[a, 0]
+        on_axis |= bool(np.linalg.norm(v - (v @ z) * z) < ON_AXIS_MM) and not model.prismatic[a]
+    if not on_axis:
+        return x0, model
+    idx = np.r_[np.arange(lay.bases.start, lay.bases.stop), np.arange(lay.tools.start, lay.tools.stop)]
+    sol = _fit(model, meas, sigma, x0, R0, idx, None, False, covariance=False)
+    x = x0.copy()
+    x[idx] = sol.x[: len(idx)]
+    pts = x[lay.tools].reshape(-1, 3)
+    targets = tuple((nm, r, pts[k]) for k, (nm, r, _) in enumerate(model.targets))
+    return x, dataclasses.replace(model, tool=pts[0].copy(), targets=targets)
+
+
 def identify(
     model: RobotModel,
     meas: Measurements,
@@ -535,8 +574,9 @@ def identify(
     sigma = meas.noise_sigma_mm()
     x0, R0 = prealign(model, meas)
     names = K.parameter_names(model, meas.setup_names)
-    J = K.Chain(model, x0, meas.joints, R0, meas.labels).jacobian().reshape(-1, len(x0))
-    ident = assess(model, meas.joints, J, names, meas.setup_names)
+    x_at, judged = measured_targets(model, meas, sigma, x0, R0)
+    J = K.Chain(model, x_at, meas.joints, R0, meas.labels).jacobian().reshape(-1, len(x0))
+    ident = assess(judged, meas.joints, J, names, meas.setup_names)
     idx = _select(names, ident, free)
     n_eff = sum(len(e.parameter_names(model)) for e in effects)
     if 3 * meas.n_poses <= len(idx) + n_eff:

@@ -32,7 +32,7 @@ import numpy as np
 
 from . import kinematics as K
 from .identify import (DISTINCT_DECIMALS, Calibration, ChainEvaluations, Folds, _calibrate, _select, assess,
-                       held_out, identify, pose_folds, prealign)
+                       held_out, identify, measured_targets, pose_folds, prealign)
 from .io import Measurements
 from .model import RobotModel
 
@@ -115,8 +115,9 @@ class _Shared:
         self.x0, self.R0 = prealign(model, meas)
         self.names = K.parameter_names(model, meas.setup_names)
         self.evals = ChainEvaluations(model, meas.joints, self.R0, labels=meas.labels)
-        J = self.evals(self.x0)[1].reshape(-1, len(self.x0))
-        self.ident = assess(model, meas.joints, J, self.names, meas.setup_names)
+        x_at, judged = measured_targets(model, meas, self.sigma, self.x0, self.R0)
+        J = self.evals(x_at)[1].reshape(-1, len(self.x0))
+        self.ident = assess(judged, meas.joints, J, self.names, meas.setup_names)
 
     def identify(self, free, idx, *, loss, folds, prior_scale, start=None) -> tuple[Calibration, Folds | None]:
         """The candidate identified on all the data, and its cross-validation still to be solved (held_out, with

@@ -133,3 +133,24 @@ def test_a_second_branch_gains_exactly_the_two_parameters_mdh_lacks():
     what the same tree identified with five parameters per row (50)."""
     r = structural(parse_model(torso_two_arms()))
     assert r.rank == 52
+
+
+def test_identifiability_is_judged_where_the_target_really_is(seed):
+    """A model whose nominal target sits on the last joint axis, at the wrist centre (a URDF tool link's origin),
+    measured with the SMR off that axis: the parameters identified are those of the same model told where the SMR
+    is, not the fewer that the point on the axis would leave (the wrist's alphas and offsets, e.g. A6.alpha)."""
+    from calib_core.robots import arm6
+    from calib_core.twin import Twin
+
+    doc = arm6()
+    doc["tool"] = [0.0, 0.0, 0.0]
+    doc["joints"][-1]["d"] = 0.0
+    on_axis = parse_model(doc)
+    twin = Twin(on_axis, seed, tool_error_mm=40.0, repeatability_mm=0.0, tracker_noise=False)
+    meas = twin.measure(n=120)
+    told = parse_model({**doc, "tool": (twin.x_true[K.layout(on_axis).tools]).tolist()})
+    names = K.parameter_names(on_axis)
+    at_nominal = {names[i] for i in structural(on_axis).identifiable}
+    got = {names[i] for i in identify(on_axis, meas, regularize=False, folds=0).identifiability.identifiable}
+    want = {names[i] for i in identify(told, meas, regularize=False, folds=0).identifiability.identifiable}
+    assert got == want and at_nominal < got and "A6.alpha" in got - at_nominal, (got ^ want, seed)
