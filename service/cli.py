@@ -178,6 +178,14 @@ def cmd_export_urdf(args) -> int:
             if f.get("kind") != "unexplained" and f.get("kind") in (doc.get("model") or [])]}}
     else:
         model = doc
+    if args.form != "rows" and model is doc and isinstance(doc, dict) and isinstance(doc.get("urdf"), dict) \
+            and (args.source or (args.form == "original" or doc["urdf"].get("source"))):
+        return _export_patched_urdf(args, doc)
+    if args.form == "original" or args.base_joint:
+        print(f"calib export-urdf: {args.file}: the original URDF can be patched from a model imported from a URDF "
+              "(calib import-urdf, GET /calibrations/{id}/model), not from a calibration answer or a model written "
+              "by hand", file=sys.stderr)
+        return 1
     try:
         text = to_urdf(model, args.name)
     except ModelError as exc:
@@ -191,6 +199,46 @@ def cmd_export_urdf(args) -> int:
         Path(args.output).write_text(text)
     else:
         sys.stdout.write(text)
+    return 0
+
+
+def _export_patched_urdf(args, doc: dict) -> int:
+    """`export-urdf` of a model imported from a URDF: the original file patched (calib_core.urdf_patch) and its side
+    file (`--side`, default next to `-o` as <name>.calibration.json)."""
+    import json
+
+    from calib_core.model import ModelError
+    from calib_core.urdf_patch import export_calibrated_model
+
+    source = None
+    if args.source:
+        try:
+            source = Path(args.source).read_text(encoding="utf-8-sig")
+        except OSError as exc:
+            print(f"calib export-urdf: {exc}", file=sys.stderr)
+            return 2
+    side_path = Path(args.side) if args.side else (
+        Path(args.output).with_suffix(".calibration.json") if args.output else None)
+    try:
+        out = export_calibrated_model(doc, source=source, base_joint=args.base_joint,
+                                      side_ref=side_path.name if side_path else None)
+    except ModelError as exc:
+        for e in exc.errors:
+            print(f"calib export-urdf: {args.file}: {e['field']}: {e['message']}", file=sys.stderr)
+        return 1
+    except (TypeError, ValueError, KeyError, AttributeError) as exc:
+        print(f"calib export-urdf: {args.file}: not a contract model imported from a URDF ({exc})", file=sys.stderr)
+        return 1
+    if args.output:
+        Path(args.output).write_text(out.urdf, encoding="utf-8")
+    else:
+        sys.stdout.write(out.urdf)
+    if side_path:
+        side_path.write_text(json.dumps(out.side, indent=2) + "\n")
+    print(f"calib export-urdf: the original URDF with the calibrated origins of {len(out.changed)} joints "
+          f"({', '.join(out.changed) or 'none'}); "
+          + (f"targets, base pose and effects in {side_path}" if side_path else
+             "targets, base pose and effects not written (give --side FILE)"), file=sys.stderr)
     return 0
 
 
@@ -329,6 +377,16 @@ def main(argv: list[str] | None = None) -> int:
     eu.add_argument("file", metavar="CALIBRATION_OR_MODEL.json")
     eu.add_argument("--name", help="the URDF robot name (default: the model's)")
     eu.add_argument("-o", "--output", metavar="OUT.urdf", help="write here (default: standard output)")
+    eu.add_argument("--form", choices=["original", "rows"], help="original: the URDF the model was imported from, "
+                    "only the calibrated joint origins changed (the default for a model imported from a URDF, "
+                    "e.g. GET /calibrations/{id}/model); rows: a URDF written from the model rows")
+    eu.add_argument("--source", metavar="ROBOT.urdf", help="the original URDF, when the model does not carry it "
+                    "(urdf.source)")
+    eu.add_argument("--side", metavar="SIDE.json", help="form original: where to write the side file (targets in "
+                    "their links, base poses, effects; default: next to -o as OUT.calibration.json)")
+    eu.add_argument("--base-joint", nargs="?", const=True, default=None, metavar="LINK",
+                    help="form original: add a root link (default name measurement_frame) fixed to the URDF's root "
+                    "by the identified base pose")
     eu.set_defaults(fn=cmd_export_urdf)
     pl = sub.add_parser("plan", help="which poses to measure: a CSV of joint values a robot program can run",
                         description="Plans poses within the joint limits whose target faces the tracker: `geometric` "

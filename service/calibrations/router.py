@@ -57,15 +57,46 @@ def get_calibrated_model(calibration_id: str, s: Session = Depends(get_read_sess
 @router.get("/calibrations/{calibration_id}/urdf", response_class=Response,
             responses={200: {"description": "the URDF", "content": {"application/xml": {
                 "schema": {"type": "string"}, "example": '<?xml version="1.0"?>\n<robot name="spray7">...'}}},
-                **problem_responses(404)},
+                **problem_responses(404, 422)},
             summary="The calibrated model as URDF (contract section 5)")
-def get_calibrated_urdf(calibration_id: str, s: Session = Depends(get_read_session, scope="function")) -> Response:
-    """Each model row is a joint whose origin carries the identified geometry (MD-H rows: axis `0 0 1`; xyz/rpy
-    rows: the row's own axis, fixed rows as fixed joints, coupled rows with `<mimic>`); each target is a link at
-    its identified point; effects a URDF cannot hold are listed in a comment. A model imported from a URDF keeps
-    its base, link and target names and frames."""
-    text = service.calibrated_urdf(s, service.get_calibration(s, calibration_id))
+def get_calibrated_urdf(calibration_id: str,
+                        base_joint: str | None = Query(None, description="a robot imported from a URDF: add a root "
+                                                       "link of this name (`true`: `measurement_frame`) fixed to the "
+                                                       "URDF's root by the identified base pose"),
+                        form: str | None = Query(None, description="`original` (default for a robot imported from "
+                                                 "a URDF): that file patched; `rows`: written from the model rows "
+                                                 "(the default for any other model)"),
+                        s: Session = Depends(get_read_session, scope="function")) -> Response:
+    """A robot imported from a URDF: **the original file patched**. Only the `<origin xyz rpy>` of the joints the
+    calibration moved are rewritten (full precision); every link and joint name, mesh, collision, inertial,
+    transmission, gazebo tag and comment is kept as it was, and one comment after `<robot>` says what changed.
+    What a URDF cannot hold (the measured target points in their links, the identified base poses, effects) is
+    in `GET /calibrations/{id}/urdf/calibration.json`. `?base_joint=true` (or a link name) adds the measurement
+    frame as a new root link with a fixed joint.
+
+    Any other model (or `?form=rows`): each model row is a joint whose origin carries the identified geometry
+    (MD-H rows: axis `0 0 1`; xyz/rpy rows: the row's own axis, fixed rows as fixed joints, coupled rows with
+    `<mimic>`); each target is a link at its identified point; effects a URDF cannot hold are listed in a
+    comment."""
+    bj: str | bool | None = base_joint
+    if base_joint is not None and base_joint.strip().lower() in ("", "false", "0", "no", "off"):
+        bj = None
+    elif base_joint is not None and base_joint.strip().lower() in ("true", "1", "yes", "on"):
+        bj = True
+    text = service.calibrated_urdf(s, service.get_calibration(s, calibration_id), bj, form)
     return Response(text, media_type="application/xml")
+
+
+@router.get("/calibrations/{calibration_id}/urdf/calibration.json",
+            responses=problem_responses(404),
+            summary="What the patched URDF cannot hold: target points, base poses, effects (m, rad)")
+def get_urdf_side_file(calibration_id: str, s: Session = Depends(get_read_session, scope="function")) -> dict:
+    """The side file of `GET /calibrations/{id}/urdf` for a robot imported from a URDF: `targets` (each SMR point
+    in its target link's frame, m), `base_poses` (per setup, the URDF base link in the measurement frame),
+    `base_joint` (when asked for), `changed_joints`, `mimic` (multiplier / offset of each coupled row and where
+    it is written), `effects` (identified effects with their values: predict and compensate include them, the
+    URDF does not). 404 for a robot whose model did not come from a URDF."""
+    return service.urdf_side_file(s, service.get_calibration(s, calibration_id))
 
 
 @router.post("/calibrations/{calibration_id}/predict", response_model=PredictOut,

@@ -98,11 +98,56 @@ def calibrated_model(s: Session, c: Calibration) -> dict:
     return doc
 
 
-def calibrated_urdf(s: Session, c: Calibration) -> str:
-    """The calibrated model as URDF: the identified geometry in the joint origins, effects in a comment."""
+def calibrated_urdf(s: Session, c: Calibration, base_joint: str | bool | None = None, form: str | None = None) -> str:
+    """The calibrated model as URDF. A robot imported from a URDF (its stored model keeps the text as
+    ``urdf.source``): that file patched, only the origins of the joints the calibration moved changed
+    (calib_core.urdf_patch), with a root link carrying the identified base pose when `base_joint` names one.
+    Any other model, or `form` ``"rows"``: a URDF written from the model rows (the identified geometry in the
+    joint origins, each target a link at its identified point, effects and base pose in comments)."""
+    if form not in (None, "original", "rows"):
+        raise ProblemError(422, "form is 'original' (the imported URDF patched) or 'rows' (written from the model "
+                           "rows)", kind="validation", errors=[{"field": "form", "value": form,
+                                                                "message": "must be 'original' or 'rows'"}])
+    patched = urdf_patch(s, c, base_joint) if form != "rows" else None
+    if patched is not None:
+        return patched.urdf
+    if form == "original":
+        raise ProblemError(404, f"calibration {c.id!r} is of a robot not imported from a URDF: there is no original "
+                           "to patch (form=rows writes one from the model rows)", kind="not-found")
+    if base_joint:
+        raise ProblemError(422, "base_joint needs the original URDF (a robot imported from a URDF, form=original); "
+                           "the URDF written from the model rows lists the base pose in a comment", kind="validation",
+                           errors=[{"field": "base_joint", "value": base_joint, "message": "no URDF source"}])
     from calib_core.urdf import to_urdf
 
     return to_urdf(calibrated_model(s, c))
+
+
+def urdf_side_file(s: Session, c: Calibration) -> dict:
+    """The side document of the patched URDF: targets in their links, base poses, effects, mimic (m, rad)."""
+    patched = urdf_patch(s, c, None)
+    if patched is None:
+        raise ProblemError(404, f"calibration {c.id!r} is of a robot not imported from a URDF: its URDF is written "
+                           "from the model rows; GET /calibrations/{id}/model has the base pose and effects",
+                           kind="not-found")
+    return patched.side
+
+
+def urdf_patch(s: Session, c: Calibration, base_joint: str | bool | None):
+    """calib_core.urdf_patch.PatchedUrdf of the calibration, or None when the robot's model has no URDF source."""
+    from calib_core.model import ModelError
+    from calib_core.urdf_patch import SIDE_FILE, export_calibration, source_of
+
+    r = s.get(Robot, c.robot_id)
+    if source_of(r.model_json) is None:
+        return None
+    try:
+        return export_calibration(r.model_json, c.robot_state, base_joint=base_joint, calibration_id=c.id,
+                                  side_ref=f"/calibrations/{c.id}/urdf/{SIDE_FILE}")
+    except ModelError as exc:
+        n = len(exc.errors)
+        raise ProblemError(422, f"the calibrated URDF cannot be written: {n} problem{'s' * (n != 1)}",
+                           kind="validation", errors=exc.errors) from None
 
 
 def _joint_range_problems(model, rows, field: str, errors: list) -> int:
