@@ -9,9 +9,37 @@ contract model JSON in one of two forms; :func:`to_urdf` writes a model (or a ca
 * xyz form (``form="xyz"``; the default for several targets or a mimic joint on the way): one row per URDF
   joint, given the URDF way (``xyz``/``rpy`` of the joint origin in the parent joint's child-link frame,
   ``axis``), ``parent`` where a row does not follow the one before it (trees), URDF ``fixed`` joints as
-  ``type: fixed`` rows, ``mimic`` joints as ``coupled`` rows, one target per target link at its link origin.
+  ``type: fixed`` rows, ``mimic`` joints as ``coupled`` rows, one target per target link (at its SMR offset).
   A mimic joint's source joint is taken in too when it is off the paths to the targets (the Hilti column: the
   measured stages mimic a stage that carries nothing), so its value is the CSV column.
+
+SMR offsets: each target is put at its target link's origin unless the user names the nominal SMR offset
+(``smr_m``: metres, in the target link's frame; ``"x,y,z;x,y,z"`` one triple per target in the order of the
+targets, as the REST ``smr`` parameter and ``calib import-urdf --smr`` take it, or a list of triples, or a mapping
+link -> triple). ``tool0`` or ``hand_tool_link`` lies on the last joint axis; a real SMR does not. MD-H form: the
+offset is turned from the target link frame into the last MD-H frame and added to the ``tool`` point; xyz form:
+it is each target's ``xyz`` (the target link frame is its row's link frame). Model units in both; the
+extension's ``smr_m`` keeps the offsets as given (m, link frame). |x|, |y|, |z| above ``MAX_SMR_OFFSET_M``
+(10 m: most likely mm) is refused, naming ``smr`` and the value.
+
+Read the way the URDF spec and urdfdom (so pinocchio) read them, each noted in the extension's ``notes`` (a
+list of plain sentences naming the joint; only for the joints taken in):
+
+* a ``fixed`` joint with a ``<mimic>``: the mimic is ignored (Talos's grippers);
+* a revolute ``<limit>`` without ``lower`` and ``upper`` (only effort / velocity; the spec's default is 0 for
+  both), with ``lower = upper = 0``, or with a range beyond 100 turns (``+-1e16``): a joint without position
+  limits (no ``limits`` in the model, as an unlimited revolute joint; written back as ``continuous``), never
+  [0, 0]; the same on a prismatic joint: +-100 m, the model's bound (a prismatic row needs limits); only one of
+  ``lower`` / ``upper`` given: the other is 0;
+* a ``<mimic>`` naming no joint of the URDF: ignored, the joint read as an independent (actuated) joint.
+
+What urdfdom refuses stays refused: a revolute or prismatic joint without ``<limit>``, lower above upper.
+
+Xacro: a xacro file (an element or attribute in the xacro namespace, ``xacro:`` without its declaration, or a
+``${...}`` / ``$(...)`` substitution in an attribute the importer reads: the robot's, a link's name and
+inertial, a joint and its elements) gets one error, :data:`XACRO_HINT` (expand it with ``xacro`` first). A
+``xmlns:xacro`` declaration alone is no sign (xacro keeps it in the URDFs it writes), nor is ``${...}`` in a
+comment, a visual or a collision (not read here, nor by pinocchio).
 
 Conventions
 
@@ -36,13 +64,17 @@ Conventions
   their effort / velocity limits; MD-H form: the pose of the MD-H base frame in the URDF base link
   (``base_xyz``, ``base_rpy``) and the orientation of the target link in the last MD-H frame (``tool_rpy``),
   both in model units; xyz form: ``links``, each row's child link name. :func:`to_urdf` uses it, so URDF ->
-  model -> URDF keeps the link names and the base and target link frames, not only the points.
+  model -> URDF keeps the link names and the base and target link frames, not only the points. Both forms:
+  ``notes`` (what was ignored or read leniently, see above; often empty), ``smr_m`` (when SMR offsets were
+  given) and ``source``, the original URDF text (for an exporter that patches it; a stored model is thereby
+  about the URDF's size: Talos, 110 kB of URDF, makes a 127 kB model document).
 * Export of a calibrated model: the identified MD-H constants of each row (and the identified target points)
   are moved into the URDF joint origins, in the original link frames and about the original axes
   (:func:`general_rows`); coupled rows get ``<mimic>``; effects a URDF cannot hold (and a coupling on several
   joints, the identified base poses) are listed in comments.
 
-Not supported: ``floating`` and ``planar`` joints among the rows taken in (a clear error names the joint).
+Not supported: ``floating`` and ``planar`` joints among the rows taken in (a clear error names the joint), xacro
+(expand it first).
 
 Security: the text is refused when it carries a DOCTYPE (so no entity declarations, no entity expansion,
 no external entities), the way defusedxml does.
@@ -52,7 +84,7 @@ from __future__ import annotations
 import math
 import re
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 from xml.sax.saxutils import quoteattr
 
@@ -60,7 +92,7 @@ import numpy as np
 
 from .frames import Link, fold_links, mdh_transform, rot_x, rot_y, rot_z
 from .io import NUMBER
-from .model import ANGLE_TO_RAD, LENGTH_TO_MM, MAX_LENGTH_MM, ModelError, RobotModel, parse_model
+from .model import ANGLE_TO_RAD, LENGTH_TO_MM, MAX_LENGTH_MM, MAX_REVOLUTE_DEG, ModelError, RobotModel, parse_model
 
 CONTINUOUS_LIMIT_RAD = 2.0 * math.pi
 """Limits written for a URDF ``continuous`` joint: one turn each way."""
@@ -77,8 +109,15 @@ rather than the common normal, which would lie up to 1/|sin| link lengths away (
 calibrated model whose parallel axes are tilted by a milliradian). Both forms are exact."""
 EXTENSION = "urdf"
 """The model-JSON key of the URDF extension object."""
+MAX_REVOLUTE_RAD = math.radians(MAX_REVOLUTE_DEG)
+"""A revolute ``<limit>`` beyond this (100 turns; e.g. +-1e16) is read as no position limit (and noted)."""
+MAX_SMR_OFFSET_M = 10.0
+"""|x|, |y|, |z| of a nominal SMR offset (m, in its target link's frame): a larger one is refused (most likely
+given in mm)."""
+XACRO_HINT = "this is a xacro file: expand it with `xacro FILE > robot.urdf` first"
 
 _DOCTYPE = re.compile(r"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
+_XACRO_SUBST = re.compile(r"\$[({]")
 
 
 class UrdfError(ModelError):
@@ -147,6 +186,8 @@ class _Joint:
     where: str
     multiplier: float = 1.0
     offset: float = 0.0
+    notes: list[str] = field(default_factory=list)
+    """What was ignored or read the lenient way (plain sentences naming the joint)."""
 
 
 def _where(kind: str, name) -> str:
@@ -179,7 +220,8 @@ def _one(errors, el, attr, where):
     return None if v is None else float(v[0])
 
 
-def _read(text) -> ET.Element:
+def _decode(text) -> str:
+    """The URDF as text (bytes: UTF-8, a BOM dropped), its size checked."""
     if isinstance(text, (bytes, bytearray)):
         try:
             text = bytes(text).decode("utf-8-sig")
@@ -191,6 +233,57 @@ def _read(text) -> ET.Element:
     if len(text) > MAX_URDF_CHARS:
         raise UrdfError([{"field": "urdf", "value": len(text),
                           "message": f"the URDF is larger than {MAX_URDF_CHARS} characters"}])
+    return text
+
+
+def _xacro_error(field: str, value) -> UrdfError:
+    return UrdfError([{"field": field, "value": value, "message": XACRO_HINT}])
+
+
+def _is_xacro_name(name: str) -> bool:
+    """An element or attribute name in a xacro namespace (``{http://www.ros.org/wiki/xacro}macro``)."""
+    return name.startswith("{") and "xacro" in name[1:name.find("}")].lower()
+
+
+def _check_xacro(root: ET.Element) -> None:
+    """Refuses a xacro file with one clear error: an element or attribute in the xacro namespace anywhere
+    (``<xacro:macro>``, ``<xacro:include>``, ``<xacro:property>``, ``xacro:if``), or a ``${...}`` / ``$(...)``
+    substitution in an attribute this importer reads (the robot's, a link's name and inertial, a joint and its
+    elements). A ``xmlns:xacro`` declaration alone is no sign: xacro keeps it in the URDFs it writes; nor is
+    ``${...}`` in a comment, a visual or a collision (ignored here, as by urdfdom and pinocchio)."""
+    for el in root.iter():
+        if not isinstance(el.tag, str):
+            continue
+        if _is_xacro_name(el.tag):
+            raise _xacro_error("urdf", f"<xacro:{el.tag.split('}', 1)[1]}>")
+        for k in el.attrib:
+            if _is_xacro_name(k):
+                raise _xacro_error("urdf", f"<{el.tag} xacro:{k.split('}', 1)[1]}=...>")
+
+    def scan(el: ET.Element, where: str) -> None:
+        for k, v in el.attrib.items():
+            if _XACRO_SUBST.search(v):
+                raise _xacro_error(f"{where}/@{k}", v[:80])
+        for c in el:
+            if isinstance(c.tag, str):
+                scan(c, f"{where}/{c.tag}")
+
+    for k, v in root.attrib.items():
+        if _XACRO_SUBST.search(v):
+            raise _xacro_error(f"robot/@{k}", v[:80])
+    for el in root:
+        if el.tag == "joint":
+            scan(el, _where("joint", el.get("name")))
+        elif el.tag == "link":
+            where = _where("link", el.get("name"))
+            if _XACRO_SUBST.search(el.get("name") or ""):
+                raise _xacro_error(f"{where}/@name", el.get("name")[:80])
+            for inertial in el.findall("inertial"):
+                scan(inertial, f"{where}/inertial")
+
+
+def _read(text) -> ET.Element:
+    text = _decode(text)
     m = _DOCTYPE.search(text)
     if m:
         line = text.count("\n", 0, m.start()) + 1
@@ -203,12 +296,45 @@ def _read(text) -> ET.Element:
         root = ET.fromstring(text)
     except ET.ParseError as exc:
         line, col = exc.position
+        if str(exc).startswith("unbound prefix") and re.search(r"<\s*xacro:|\sxacro:\w+\s*=", text):
+            raise _xacro_error("urdf", f"line {line}, column {col + 1}: xacro: without xmlns:xacro") from None
         raise UrdfError([{"field": "urdf", "value": f"line {line}, column {col + 1}",
                           "message": f"not well-formed XML: {str(exc).split(':')[0]}"}]) from None
     if root.tag != "robot":
         raise UrdfError([{"field": root.tag, "value": root.tag,
                           "message": "the root element of a URDF must be <robot>"}])
+    _check_xacro(root)
     return root
+
+
+def _lenient_limits(jtype: str, name: str, lim: ET.Element, lower, upper, notes: list[str]):
+    """(lower, upper) of a revolute or prismatic joint's <limit>, read the way the URDF spec and urdfdom do:
+    a missing lower or upper is 0; lower = upper = 0 (e.g. a <limit> with only effort and velocity) is no
+    position range, so (-inf, inf) for "no limits" (a prismatic joint: +-100 m, the model's bound); a revolute
+    range beyond 100 turns (+-1e16 for "unlimited") likewise. Each such reading is noted."""
+    if lower is None or upper is None:  # a bad number was already reported as an error
+        gave_lower, gave_upper = lim.get("lower") is not None, lim.get("upper") is not None
+        if (gave_lower and lower is None) or (gave_upper and upper is None):
+            return lower, upper
+        missing = [k for k, g in (("lower", gave_lower), ("upper", gave_upper)) if not g]
+        lower, upper = (0.0 if lower is None else lower), (0.0 if upper is None else upper)
+        if lower != 0.0 or upper != 0.0:
+            notes.append(f"joint {name!r}: <limit> gives no {' and no '.join(missing)}: read as 0 (the URDF "
+                         f"default), so the joint's range is [{lower:g}, {upper:g}]")
+            return lower, upper
+        what = f"<limit> gives no {' and no '.join(missing)} (the URDF default is 0)"
+    elif lower == 0.0 and upper == 0.0:
+        what = "<limit lower=\"0\" upper=\"0\"> gives no position range"
+    elif jtype == "revolute" and max(abs(lower), abs(upper)) > MAX_REVOLUTE_RAD and lower < upper:
+        what = f"<limit> [{lower:g}, {upper:g}] rad reaches beyond 100 turns"
+    else:
+        return lower, upper
+    if jtype == "prismatic":
+        notes.append(f"joint {name!r}: {what}: read as a travel of +-{MAX_LENGTH_M:g} m, the model's bound "
+                     "(a prismatic row needs limits); give its real limits for planning")
+        return -MAX_LENGTH_M, MAX_LENGTH_M
+    notes.append(f"joint {name!r}: {what}: read as a revolute joint without position limits")
+    return -math.inf, math.inf
 
 
 def _parse_joints(root: ET.Element):
@@ -265,10 +391,13 @@ def _parse_joints(root: ET.Element):
                 axis = axis / nrm
         lim = el.find("limit")
         lower = upper = effort = velocity = None
+        notes: list[str] = []
         if lim is not None:
             lower, upper = _one(errors, lim, "lower", f"{where}/limit"), _one(errors, lim, "upper", f"{where}/limit")
             effort = _one(errors, lim, "effort", f"{where}/limit")
             velocity = _one(errors, lim, "velocity", f"{where}/limit")
+            if jtype in ("revolute", "prismatic"):
+                lower, upper = _lenient_limits(jtype, name, lim, lower, upper, notes)
         mimic = el.find("mimic")
         mult = off = None
         if mimic is not None:
@@ -277,11 +406,20 @@ def _parse_joints(root: ET.Element):
                                "message": "a <mimic> needs joint=... (the joint it follows)"})
             mult = _one(errors, mimic, "multiplier", f"{where}/mimic") if mimic.get("multiplier") else 1.0
             off = _one(errors, mimic, "offset", f"{where}/mimic") if mimic.get("offset") else 0.0
+            if jtype == "fixed" and mimic.get("joint"):
+                notes.append(f"joint {name!r} is fixed: its <mimic joint={mimic.get('joint')!r}> was ignored "
+                             "(a fixed joint has no value to follow)")
+                mimic = None
         joints[name] = _Joint(name, jtype, ends.get("parent"), ends.get("child"), xyz, rpy, axis, lower, upper,
                               effort, velocity, None if mimic is None else (mimic.get("joint") or "?"), where,
-                              1.0 if mult is None else mult, 0.0 if off is None else off)
+                              1.0 if mult is None else mult, 0.0 if off is None else off, notes)
     if errors:
         raise UrdfError(errors)
+    for j in joints.values():
+        if j.mimic is not None and j.mimic not in joints:
+            j.notes.append(f"joint {j.name!r} mimics {j.mimic!r}, which is no joint of the URDF: the <mimic> was "
+                           f"ignored and {j.name!r} read as an independent (actuated) joint")
+            j.mimic, j.multiplier, j.offset = None, 1.0, 0.0
     by_child: dict[str, _Joint] = {}
     for j in joints.values():
         if j.child in by_child:
@@ -306,6 +444,8 @@ def _children(joints: dict[str, _Joint]) -> dict[str, list[_Joint]]:
 def _base_link(links, by_child, base) -> str:
     if base is None:
         roots = [ln for ln in links if ln not in by_child]
+        if not links:
+            raise UrdfError([{"field": "link", "value": None, "message": "the URDF has no <link>"}])
         if len(roots) != 1:
             raise UrdfError([{"field": "link", "value": roots, "message":
                               f"the URDF has {len(roots)} root links ({', '.join(roots) or 'none: a cycle'}); "
@@ -399,20 +539,110 @@ def _link_mass(el: ET.Element, name: str, scale: float, errors: list):
     return m, xyz * scale
 
 
+def _smr_list(smr_m):
+    """The nominal SMR offsets as given (None, ``"x,y,z;x,y,z"``, a sequence of triples or a mapping target
+    link -> triple), each checked: a list of (target link or None, 3 floats m), or None."""
+    if smr_m is None or (isinstance(smr_m, str) and not smr_m.strip()):
+        return None
+    errors: list[dict] = []
+    if isinstance(smr_m, str):
+        items = [(None, part) for part in smr_m.split(";")]
+    elif isinstance(smr_m, dict):
+        items = [(str(k), v) for k, v in smr_m.items()]
+    else:
+        try:
+            items = [(None, v) for v in smr_m]
+        except TypeError:
+            raise UrdfError([{"field": "smr", "value": repr(smr_m)[:80], "message": "the SMR offsets must be "
+                              "'x,y,z;x,y,z' (m), a list of (x, y, z) or a mapping target link -> (x, y, z)"}]
+                            ) from None
+    out = []
+    for k, v in items:
+        field = "smr" if k is None else f"smr[{k!r}]"
+        shown = v.strip()[:80] if isinstance(v, str) else repr(v)[:80]
+        parts = [c.strip() for c in v.split(",")] if isinstance(v, str) else v
+        try:
+            parts = list(parts)
+        except TypeError:
+            parts = [parts]
+        if len(parts) != 3:
+            errors.append({"field": field, "value": shown, "message": "an SMR offset is three numbers x,y,z (m, in "
+                           "its target link's frame); the offsets of several targets are separated by ';'"})
+            continue
+        xyz = []
+        for c in parts:
+            if isinstance(c, str):
+                c = float(c) if NUMBER.fullmatch(c) else math.nan
+            elif isinstance(c, bool) or not isinstance(c, (int, float, np.integer, np.floating)):
+                c = math.nan
+            xyz.append(float(c))
+        if not all(math.isfinite(c) for c in xyz):
+            errors.append({"field": field, "value": shown, "message": "an SMR offset is three finite numbers x,y,z "
+                           "(m, in its target link's frame)"})
+        elif max(abs(c) for c in xyz) > MAX_SMR_OFFSET_M:
+            errors.append({"field": field, "value": shown, "message": "implausible: each component must be at most "
+                           f"{MAX_SMR_OFFSET_M:g} m (the offset is in metres, not millimetres)"})
+        else:
+            out.append((k, np.array(xyz, float)))
+    if errors:
+        raise UrdfError(errors)
+    return out
+
+
+def _smr_of(offsets, targets: list[str]) -> dict[str, np.ndarray] | None:
+    """Each target link's nominal SMR offset (m, link frame) from :func:`_smr_list`, matched to the targets."""
+    if offsets is None:
+        return None
+    if all(k is None for k, _ in offsets):
+        if len(offsets) != len(targets):
+            raise UrdfError([{"field": "smr", "value": ";".join(",".join(f"{c:g}" for c in v) for _, v in offsets),
+                              "message": f"{len(offsets)} SMR offset{'s' * (len(offsets) != 1)} for {len(targets)} "
+                                         f"target link{'s' * (len(targets) != 1)} ({', '.join(targets)}): give one "
+                                         "x,y,z per target, in the order of the targets, separated by ';'"}])
+        return {t: v for t, (_, v) in zip(targets, offsets)}
+    unknown = [k for k, _ in offsets if k not in targets]
+    if unknown:
+        raise UrdfError([{"field": f"smr[{k!r}]", "value": k, "message":
+                          f"{k!r} is not one of the target links ({', '.join(targets)})"} for k in unknown])
+    given = dict(offsets)
+    return {t: given.get(t, np.zeros(3)) for t in targets}
+
+
+def _finish(doc: dict, ext: dict, joints_taken, smr: dict[str, np.ndarray] | None, source: str) -> dict:
+    """The extension's notes (what was ignored or read leniently, of the joints taken in), SMR offsets and
+    the original URDF text, then the contract check."""
+    if smr is not None:
+        ext["smr_m"] = {t: [float(v) + 0.0 for v in off] for t, off in smr.items()}
+    ext["notes"] = [n for j in joints_taken for n in j.notes]
+    ext["source"] = source
+    doc[EXTENSION] = ext
+    return _validated(doc)
+
+
 def parse_urdf(text: str | bytes, base: str | None = None, target=None, *,
-               length_unit: str = "m", angle_unit: str = "rad", name: str | None = None, form: str = "auto") -> dict:
+               length_unit: str = "m", angle_unit: str = "rad", name: str | None = None, form: str = "auto",
+               smr_m=None) -> dict:
     """Contract model JSON (``length_unit`` / ``angle_unit``) of the URDF joints from `base` (default: the root
     link) to the `target` links (one link, ``"a,b"`` or a list; default: the only leaf below the base).
 
     `form`: ``"mdh"`` folds one serial chain into MD-H rows, ``"xyz"`` writes one xyz/rpy/axis row per URDF
     joint (trees, fixed rows, coupled rows), ``"auto"`` (default) the MD-H form for one target whose chain has
-    no mimic joint, else the xyz form. Raises :class:`UrdfError` (a ValueError) naming the element, attribute
-    and value of every problem found."""
+    no mimic joint, else the xyz form.
+
+    `smr_m`: the nominal SMR (measured point) offset of each target, metres, in the target link's frame
+    (default: each target at its link's origin): ``"x,y,z;x,y,z"`` (one triple per target, in the order of the
+    targets: the REST ``smr`` parameter and the CLI ``--smr``), a list of (x, y, z) in that order, or a mapping
+    target link -> (x, y, z) (targets left out: at their origin).
+
+    Raises :class:`UrdfError` (a ValueError) naming the element, attribute (or parameter) and value of every
+    problem found."""
     if length_unit not in LENGTH_TO_MM or angle_unit not in ANGLE_TO_RAD:
         raise ValueError("length_unit must be 'm' or 'mm' and angle_unit 'rad' or 'deg'")
     if form not in ("auto", "mdh", "xyz"):
         raise ValueError("form must be 'auto', 'mdh' or 'xyz'")
     scale = 1000.0 / LENGTH_TO_MM[length_unit]  # URDF m -> model length unit
+    offsets = _smr_list(smr_m)
+    text = _decode(text)
     root = _read(text)
     links, joints, by_child = _parse_joints(root)
     targets = _target_names(target)
@@ -423,17 +653,21 @@ def parse_urdf(text: str | bytes, base: str | None = None, target=None, *,
             if any(j.mimic is not None for j in path):
                 form = "xyz"
     if form == "xyz":
-        return _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit, angle_unit, name)
+        return _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit, angle_unit, name,
+                          offsets, text)
     if len(targets) > 1:
         raise UrdfError([{"field": "target", "value": targets, "message":
                           "the MD-H form takes one target link (one serial chain); the xyz form takes several"}])
-    return _parse_mdh(root, links, joints, by_child, base, targets[0], scale, length_unit, angle_unit, name)
+    return _parse_mdh(root, links, joints, by_child, base, targets[0], scale, length_unit, angle_unit, name,
+                      offsets, text)
 
 
-def _parse_mdh(root, links, joints, by_child, base, target, scale, length_unit, angle_unit, name) -> dict:
-    """The MD-H form: one serial chain folded into MD-H rows."""
+def _parse_mdh(root, links, joints, by_child, base, target, scale, length_unit, angle_unit, name,
+               offsets=None, source: str = "") -> dict:
+    """The MD-H form: one serial chain folded into MD-H rows; the SMR offset in the tool point."""
     ang = math.degrees if angle_unit == "deg" else float
     base, target, path, children = _path(links, joints, by_child, base, target)
+    smr = _smr_of(offsets, [target])
 
     errors: list[dict] = []
     chain_links: list[Link] = []
@@ -469,6 +703,8 @@ def _parse_mdh(root, links, joints, by_child, base, target, scale, length_unit, 
                                "message": "the lower limit must be below the upper limit"})
                 continue
             lim = (j.lower * scale, j.upper * scale) if j.type == "prismatic" else (j.lower, j.upper)
+            if not (math.isfinite(j.lower) and math.isfinite(j.upper)):
+                lim = None  # a revolute joint without position limits (noted)
         extra_limits[j.name] = {k: v for k, v in (("effort", j.effort), ("velocity", j.velocity)) if v is not None}
         R = align_z(j.axis)
         chain_links.append(Link(pending @ T @ R, "prismatic" if j.type == "prismatic" else "revolute", j.name, lim))
@@ -478,9 +714,10 @@ def _parse_mdh(root, links, joints, by_child, base, target, scale, length_unit, 
     if not chain_links:
         raise UrdfError([{"field": "joint", "value": [j.name for j in path], "message":
                           f"the chain {base} -> {target} has no revolute, continuous or prismatic joint"}])
-    tool_T = pending
+    tool_T = pending  # the target link frame in the last joint's (aligned) frame
+    tool_point = tool_T[:3, 3] if smr is None else (tool_T @ np.r_[smr[target] * scale, 1.0])[:3]
     try:
-        folded = fold_links(chain_links, tool_T[:3, 3], gravity=GRAVITY, parallel_tol=PARALLEL_SIN)
+        folded = fold_links(chain_links, tool_point, gravity=GRAVITY, parallel_tol=PARALLEL_SIN)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         raise UrdfError([{"field": "joint", "value": [lk.name for lk in chain_links],
                           "message": f"the chain {base} -> {target} cannot be folded into MD-H rows: {exc}"}]) from None
@@ -538,8 +775,7 @@ def _parse_mdh(root, links, joints, by_child, base, target, scale, length_unit, 
         for row, m, c in zip(doc["joints"], masses, coms):
             row["mass"] = float(m)
             row["com"] = [float(0.0 if abs(v) < 1e-15 * max(1.0, scale) else v) for v in c]
-    doc[EXTENSION] = ext
-    return _validated(doc)
+    return _finish(doc, ext, path, smr, source)
 
 
 def _validated(doc: dict) -> dict:
@@ -582,9 +818,11 @@ def _mimic_source(joints: dict[str, _Joint], j: _Joint, errors: list):
     return cur, mult, off
 
 
-def _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit, angle_unit, name) -> dict:
+def _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit, angle_unit, name,
+               offsets=None, source: str = "") -> dict:
     """The xyz form: one xyz/rpy/axis row per URDF joint on the way from the base to the targets (and to the
-    joints their mimic joints follow), fixed rows, coupled rows, one target per target link."""
+    joints their mimic joints follow), fixed rows, coupled rows, one target per target link (at its SMR
+    offset)."""
     an = ANGLE_TO_RAD[angle_unit]
     children = _children(joints)
     base = _base_link(links, by_child, base)
@@ -593,6 +831,7 @@ def _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit,
     if base in targets:
         raise UrdfError([{"field": "target", "value": base, "message": "a target link must be below the base "
                           "link, not the base link itself"}])
+    smr = _smr_of(offsets, targets)
     need: set[str] = set()
     for t in targets:
         need.update(j.name for j in _chain(links, joints, by_child, base, t))
@@ -668,7 +907,7 @@ def _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit,
             elif not j.lower < j.upper:
                 errors.append({"field": f"{j.where}/limit", "value": [j.lower, j.upper],
                                "message": "the lower limit must be below the upper limit"})
-            else:
+            elif math.isfinite(j.lower) and math.isfinite(j.upper):  # else: no position limits (noted)
                 row["limits"] = [float(j.lower * scale_of[j.name]), float(j.upper * scale_of[j.name])]
         if j.type != "fixed":
             info = {k: v for k, v in (("effort", j.effort), ("velocity", j.velocity)) if v is not None}
@@ -705,13 +944,15 @@ def _parse_xyz(root, links, joints, by_child, base, targets, scale, length_unit,
             del row["mass"], row["com"]
     doc = {"name": name or root.get("name") or "robot", "convention": "mdh",
            "units": {"length": length_unit, "angle": angle_unit}, "joints": rows,
-           "targets": [{"name": t, "parent": by_child[t].name, "xyz": [0.0, 0.0, 0.0]} for t in targets],
+           "targets": [{"name": t, "parent": by_child[t].name,
+                        "xyz": [0.0, 0.0, 0.0] if smr is None else [float(v * scale) + 0.0 for v in smr[t]]}
+                       for t in targets],
            "gravity": list(GRAVITY)}
-    doc[EXTENSION] = {
+    ext = {
         "robot": root.get("name"), "base_link": base, "target_link": ",".join(targets), "target_links": targets,
         "form": "xyz", "links": {j.name: j.child for j in order}, "continuous": continuous, "limits": extra_limits,
     }
-    return _validated(doc)
+    return _finish(doc, ext, order, smr, source)
 
 
 def _model_field_to_urdf(field: str, doc: dict) -> str:

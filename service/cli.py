@@ -139,7 +139,8 @@ def cmd_import_urdf(args) -> int:
 
     try:
         text = Path(args.file).read_bytes()
-        doc = parse_urdf(text, args.base, args.target, length_unit=args.length_unit, angle_unit=args.angle_unit)
+        doc = parse_urdf(text, args.base, args.target, length_unit=args.length_unit, angle_unit=args.angle_unit,
+                         smr_m=args.smr)
     except OSError as exc:
         print(f"calib import-urdf: {exc}", file=sys.stderr)
         return 2
@@ -148,6 +149,8 @@ def cmd_import_urdf(args) -> int:
             print(f"calib import-urdf: {args.file}: {e['field']}: {e['message']} (value: {e['value']!r})",
                   file=sys.stderr)
         return 1
+    for note in doc["urdf"]["notes"]:
+        print(f"calib import-urdf: {args.file}: note: {note}", file=sys.stderr)
     out = json.dumps(doc, indent=2) + "\n"
     if args.output:
         Path(args.output).write_text(out)
@@ -367,7 +370,11 @@ def main(argv: list[str] | None = None) -> int:
                         "fixed joints; inertials as masses)")
     iu.add_argument("file", metavar="FILE")
     iu.add_argument("--base", metavar="LINK", help="the chain's base link (default: the URDF's root link)")
-    iu.add_argument("--target", metavar="LINK", help="the measured point's link (default: the only leaf link)")
+    iu.add_argument("--target", metavar="LINK[,LINK]", help="the measured points' links (default: the only leaf "
+                    "link); several make the xyz form")
+    iu.add_argument("--smr", metavar="X,Y,Z[;X,Y,Z]", help="the nominal SMR offset of each target in its link's frame, "
+                    "metres, one triple per target in the order of --target (default: at the link's origin); write "
+                    "--smr=-0.03,0,0.05 when it starts with a minus")
     iu.add_argument("--length-unit", choices=["m", "mm"], default="m", help="the model's length unit (default m)")
     iu.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="the model's angle unit (default rad)")
     iu.add_argument("-o", "--output", metavar="MODEL.json", help="write here (default: standard output)")

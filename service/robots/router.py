@@ -40,11 +40,17 @@ def create_robot_urdf(response: Response, body: bytes = Depends(_raw_body),
                                                   "comma-separated (default: the only leaf link)"),
                       length_unit: str = Query("m", pattern="^(m|mm)$"),
                       angle_unit: str = Query("rad", pattern="^(rad|deg)$"),
+                      smr: str | None = Query(None, max_length=2000, description="the nominal SMR offset of each "
+                                              "target in its link's frame, metres: `x,y,z` per target, in the order "
+                                              "of `targets`, separated by `;` (default: each target at its link's "
+                                              "origin)"),
                       s: Session = Depends(get_session, scope="function")) -> RobotOut:
     """`Content-Type: application/xml`: the URDF joints from `base` to `targets` as contract model JSON (with its
     `urdf` extension object; calib_core.urdf: MD-H rows for one serial chain, xyz/rpy/axis rows for a tree or a
-    chain with mimic joints), stored and validated like a JSON upload."""
-    r = service.create_robot_from_urdf(s, body, base, targets, length_unit, angle_unit)
+    chain with mimic joints), stored and validated like a JSON upload. The stored model's `urdf.notes` list what
+    was ignored or read leniently (a fixed joint's mimic, a limit without range, a mimic of no joint) and
+    `urdf.source` keeps the URDF text."""
+    r = service.create_robot_from_urdf(s, body, base, targets, length_unit, angle_unit, smr)
     response.headers["Location"] = f"/robots/{r.id}"
     return RobotOut.of(r)
 
@@ -63,8 +69,8 @@ def create_robot(response: Response, doc: dict[str, Any] = Body(..., openapi_exa
     """Validates the model (joint names, types, limits, units) and stores it exactly as posted.
     Every problem is listed in the 422 problem document as `{field, value, message}`.
     With `Content-Type: application/xml` the body is a URDF instead (contract section 5;
-    `?base=LINK&targets=LINK[,LINK]`, optional `length_unit=m|mm`, `angle_unit=rad|deg`), stored as the model
-    JSON it converts to."""
+    `?base=LINK&targets=LINK[,LINK]`, optional `smr=x,y,z[;x,y,z]` (m), `length_unit=m|mm`, `angle_unit=rad|deg`),
+    stored as the model JSON it converts to."""
     r = service.create_robot(s, doc)
     response.headers["Location"] = f"/robots/{r.id}"
     return RobotOut.of(r)

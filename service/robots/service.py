@@ -46,13 +46,16 @@ def create_robot(s: Session, doc: dict) -> Robot:
 
 
 def create_robot_from_urdf(s: Session, body: bytes, base: str | None, targets: str | None,
-                           length_unit: str = "m", angle_unit: str = "rad") -> Robot:
+                           length_unit: str = "m", angle_unit: str = "rad", smr: str | None = None) -> Robot:
     """A URDF (contract section 5) converted to the contract model JSON (calib_core.urdf) and stored like a JSON
-    upload; a bad URDF is a 422 naming the element and attribute."""
+    upload; a bad URDF (or `smr`, the targets' nominal SMR offsets `x,y,z;x,y,z` in m) is a 422 naming the element
+    and attribute (or the parameter) and nothing is stored. The model keeps its `urdf` extension: `notes` (what
+    was ignored or read leniently) and `source` (the URDF text), so the 201 answer shows the notes."""
     from calib_core.urdf import UrdfError, parse_urdf
 
     try:
-        doc = parse_urdf(body, base or None, targets or None, length_unit=length_unit, angle_unit=angle_unit)
+        doc = parse_urdf(body, base or None, targets or None, length_unit=length_unit, angle_unit=angle_unit,
+                         smr_m=smr or None)
     except UrdfError as exc:
         n = len(exc.errors)
         raise ProblemError(422, f"the URDF has {n} error{'s' * (n != 1)}; nothing was stored", kind="invalid-urdf",
