@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import kinematics as K
-from .identifiability import analyse
+from .identifiability import analyse, model_order
 from .instruments import INSTRUMENTS
 from .io import Measurements
 from .model import RobotModel
@@ -32,7 +32,8 @@ def identifiable_mask(model: RobotModel, n_poses: int = 400, seed: int = 0) -> n
     x = K.nominal_vector(model)
     J = K.Chain(model, x, q, labels=all_targets(model, n_poses)).jacobian().reshape(-1, len(x))
     mask = np.zeros(len(x), bool)
-    mask[analyse(J, K.parameter_names(model)).identifiable] = True
+    names = K.parameter_names(model)
+    mask[analyse(J, names, model_order(model, names)).identifiable] = True
     return mask
 
 
