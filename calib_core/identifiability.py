@@ -4,7 +4,8 @@ Column-normalised identification Jacobian, rank by SVD, then a greedy pivoted Gr
 preference order: base pose first (always unknown), then tool, then a, alpha, d, theta of every joint
 in chain order, then beta, so that beta enters only where it is needed, which is at
 parallel axes (Hayati; Wang et al. 2023, section 4.2: beta instead of d), and the completing pair gamma, b
-last (model.GEOMETRIC): a complete set per row, pruned here to a minimal one.
+last (model.GEOMETRIC): a complete set per row, pruned here to a minimal one. A row given as xyz/rpy/axis (or
+fixed) offers its six constants together in its own place instead (`model_order`).
 
 `assess` adds what the pose set lacks: the parameters the model's structure can identify (on a rich random
 pose set within the joint limits, cached per model geometry) but this pose set cannot, and the joints that
@@ -88,7 +89,6 @@ def model_order(model, names: list[str]) -> list[int]:
                if not np.array_equal(model.pre[j], np.eye(4)) or model.is_fixed[j]}
     order = preference_order(names)
     own = lambda i: names[i].rsplit(".", 1)  # noqa: E731
-    pair = [i for i in order if own(i)[0] in general and own(i)[1] in ("gamma", "b")]
     rank = {"a": 0, "b": 1, "alpha": 2, "gamma": 3, "theta": 4, "d": 5}  # shifts across the axis, turns, then along
     out, held = [], {}
     for i in order:

@@ -166,7 +166,6 @@ def cmd_export_urdf(args) -> int:
     """A model JSON, `GET /calibrations/{id}/model` or a calibration answer (`GET /calibrations/{id}`) as URDF."""
     import json
 
-    from calib_core.model import ModelError
     from calib_core.urdf import to_urdf
 
     try:
@@ -191,13 +190,8 @@ def cmd_export_urdf(args) -> int:
         return 1
     try:
         text = to_urdf(model, args.name)
-    except ModelError as exc:
-        for e in exc.errors:
-            print(f"calib export-urdf: {args.file}: {e['field']}: {e['message']}", file=sys.stderr)
-        return 1
     except (TypeError, ValueError, KeyError, AttributeError) as exc:
-        print(f"calib export-urdf: {args.file}: not a contract model or calibration ({exc})", file=sys.stderr)
-        return 1
+        return _export_failed(args, exc, "a contract model or calibration")
     if args.output:
         Path(args.output).write_text(text)
     else:
@@ -205,12 +199,23 @@ def cmd_export_urdf(args) -> int:
     return 0
 
 
+def _export_failed(args, exc: Exception, what: str) -> int:
+    """`export-urdf`'s error lines: each field of a ModelError (a ValueError), else why the file is not `what`."""
+    from calib_core.model import ModelError
+
+    if isinstance(exc, ModelError):
+        for e in exc.errors:
+            print(f"calib export-urdf: {args.file}: {e['field']}: {e['message']}", file=sys.stderr)
+    else:
+        print(f"calib export-urdf: {args.file}: not {what} ({exc})", file=sys.stderr)
+    return 1
+
+
 def _export_patched_urdf(args, doc: dict) -> int:
     """`export-urdf` of a model imported from a URDF: the original file patched (calib_core.urdf_patch) and its side
     file (`--side`, default next to `-o` as <name>.calibration.json)."""
     import json
 
-    from calib_core.model import ModelError
     from calib_core.urdf_patch import export_calibrated_model
 
     source = None
@@ -225,13 +230,8 @@ def _export_patched_urdf(args, doc: dict) -> int:
     try:
         out = export_calibrated_model(doc, source=source, base_joint=args.base_joint,
                                       side_ref=side_path.name if side_path else None)
-    except ModelError as exc:
-        for e in exc.errors:
-            print(f"calib export-urdf: {args.file}: {e['field']}: {e['message']}", file=sys.stderr)
-        return 1
     except (TypeError, ValueError, KeyError, AttributeError) as exc:
-        print(f"calib export-urdf: {args.file}: not a contract model imported from a URDF ({exc})", file=sys.stderr)
-        return 1
+        return _export_failed(args, exc, "a contract model imported from a URDF")
     if args.output:
         Path(args.output).write_text(out.urdf, encoding="utf-8")
     else:

@@ -154,3 +154,26 @@ def test_identifiability_is_judged_where_the_target_really_is(seed):
     got = {names[i] for i in identify(on_axis, meas, regularize=False, folds=0).identifiability.identifiable}
     want = {names[i] for i in identify(told, meas, regularize=False, folds=0).identifiability.identifiable}
     assert got == want and at_nominal < got and "A6.alpha" in got - at_nominal, (got ^ want, seed)
+
+
+def test_a_state_saved_with_five_parameters_per_row_predicts_as_before(seed):
+    """Stored calibrations from before gamma and b (no per-row marker, 5n + 6S + 3T numbers) are read with both at
+    0: the same predictions to the bit, also with several setups (their count is in the state)."""
+    from calib_core.identify import COMPLETE_ROWS, CalibratedRobot
+
+    rng = np.random.default_rng(seed)
+    model = parse_model(torso_two_arms())
+    S = 2
+    x = K.nominal_vector(model, np.c_[rng.uniform(-900, 900, (S, 3)), rng.uniform(-0.2, 0.2, (S, 3))], S)
+    g = x[: K.G * model.n_joints].reshape(model.n_joints, K.G)
+    g[:, :5] += rng.normal(0.0, 1e-2, (model.n_joints, 5))
+    robot = CalibratedRobot(model, x, np.eye(3), setup_names=("a", "b"))
+    state = robot.to_state()
+    old = {k: v for k, v in state.items() if k != COMPLETE_ROWS}
+    old["x"] = np.r_[g[:, :5].ravel(), x[K.G * model.n_joints:]].tolist()
+    back = CalibratedRobot.from_state(model, old)
+    q = sample_uniform(model, 20, rng)
+    labels = Measurements(joints=q, points=np.zeros((20, 3)), target=np.arange(20) % 2, setup=np.arange(20) // 10,
+                          setup_names=("a", "b"))
+    assert np.array_equal(back.x, x) and np.array_equal(back.predict(q, labels), robot.predict(q, labels))
+    assert np.array_equal(CalibratedRobot.from_state(model, state).x, x)

@@ -46,20 +46,21 @@ what any pose set identifies (as the coupled torso of tests/core/test_completene
 
 # --- example-robot-data's URDFs ---------------------------------------------------------------------------
 
-def _erd_urdfs() -> dict[str, Path]:
-    """File name -> path of every URDF example-robot-data installs (cmeel prefix), {} when it is absent."""
+def erd_files(suffixes: tuple[str, ...] = (".urdf",)) -> dict[str, Path]:
+    """File name -> path of every file with these suffixes that example-robot-data installs (cmeel prefix), {} when
+    it is absent."""
     try:
         files = importlib.metadata.files("example-robot-data") or []
     except importlib.metadata.PackageNotFoundError:
         return {}
     out = {}
     for f in files:
-        if str(f).endswith(".urdf"):
+        if str(f).endswith(suffixes):
             out.setdefault(Path(str(f)).name, Path(f.locate()))
     return out
 
 
-ERD = _erd_urdfs()
+ERD = erd_files()
 
 
 def urdf_text(name: str) -> str:

@@ -8,7 +8,6 @@ target link times the SMR offset; both to 1e-9 mm at random configurations. The 
 pinocchio or example-robot-data is absent."""
 from __future__ import annotations
 
-import importlib.metadata
 import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -289,15 +288,9 @@ def test_source_is_the_original_text():
 
 def _erd() -> dict[str, Path]:
     """File name -> path of example-robot-data's URDFs and xacro files ({} when it is not installed)."""
-    try:
-        files = importlib.metadata.files("example-robot-data") or []
-    except importlib.metadata.PackageNotFoundError:
-        return {}
-    out = {}
-    for f in files:
-        if str(f).endswith((".urdf", ".xacro")):
-            out.setdefault(Path(str(f)).name, Path(f.locate()))
-    return out
+    from .test_pinocchio_reference import erd_files
+
+    return erd_files((".urdf", ".xacro"))
 
 
 ERD = _erd()
