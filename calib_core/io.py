@@ -565,7 +565,8 @@ def write_measurements(meas: Measurements, model: RobotModel) -> str:
     cols = ["point", *model.actuated_names, "x", "y", "z"]
     data = [np.asarray(meas.point_ids or [f"P{i + 1:04d}" for i in range(meas.n_poses)], dtype=object)]
     data += list((meas.joints[:, act] / model.joint_scale()[act]).T) + list((meas.points / ls).T)
-    fmt = ["{}"] + ["{:.9g}"] * len(act) + ["{:.6f}"] * 3
+    nm = 6 + round(math.log10(ls))  # decimals of 1 nm in the model's length unit (6 in mm, 9 in m)
+    fmt = ["{}"] + ["{:.9g}"] * len(act) + [f"{{:.{nm}f}}"] * 3
     if meas.timestamp is not None:
         cols.append("timestamp")
         data.append(np.array([datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="seconds")

@@ -3,7 +3,7 @@ from datetime import datetime, timezone
 import numpy as np
 import pytest
 
-from calib_core.io import MeasurementError, parse_measurements, write_measurements
+from calib_core.io import MeasurementError, Measurements, parse_measurements, write_measurements
 from calib_core.model import parse_model
 from calib_core.robots import spray7
 from calib_core.twin import Twin
@@ -333,3 +333,15 @@ def test_the_column_at_a_time_path_gives_the_per_value_answer(monkeypatch, seed,
         assert np.array_equal(getattr(fast, name), getattr(slow, name)), name
     assert fast.point_ids == slow.point_ids and fast.out_of_limits == slow.out_of_limits
     assert (fast.out_of_limits[0]["first_rows"] == [6, 10]) if limits == "warn" else not fast.out_of_limits
+
+
+def test_written_points_keep_a_nanometre_in_metres_too():
+    """write_measurements gives x, y, z to 1 nm in the model's unit: 6 decimals in mm, 9 in m (6 in m were 1 um,
+    a thousand times a laser interferometer's noise)."""
+    rng = np.random.default_rng(3)
+    for unit, scale in (("mm", 1.0), ("m", 1000.0)):
+        model = parse_model({"units": {"length": unit, "angle": "deg"}, "tool": [0.1 * 1000 / scale, 0, 0],
+                             "joints": [{"name": "J1", "a": 0.0}, {"name": "J2", "a": 300.0 / scale}]})
+        points = rng.uniform(-2000.0, 2000.0, (6, 3))
+        text = write_measurements(Measurements(joints=rng.uniform(-1, 1, (6, 2)), points=points), model)
+        assert np.abs(parse_measurements(text, model).points - points).max() < 1e-6
