@@ -198,7 +198,9 @@ class PhysicalRobot:
 
     def true_model(self) -> RobotModel:
         """The model a perfect calibration would find: true geometry, tool, masses (base not included)."""
-        return dataclasses.replace(self.model, geometry=self.geometry.copy(), tool=self.tool.copy(),
+        geometry = np.asarray(self.model.geometry, float).copy()
+        geometry[:, :5] = self.geometry  # calib_core's rows carry gamma and b too: 0 in the world's MD-H rows
+        return dataclasses.replace(self.model, geometry=geometry, tool=self.tool.copy(),
                                    mass=self.mass.copy(), com=self.com.copy(), gravity=self.gravity.copy())
 
     def gravity_tracker(self) -> np.ndarray:

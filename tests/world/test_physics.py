@@ -12,7 +12,7 @@ from calib_world.mechanics import Context
 
 def _x(robot):
     """calib_core's parameter vector for the world's true robot: base rotation carried by R0."""
-    return np.concatenate([robot.geometry.ravel(), robot.base[:3, 3], np.zeros(3), robot.tool]), robot.base[:3, :3]
+    return K.nominal_vector(robot.true_model(), np.r_[robot.base[:3, 3], np.zeros(3)]), robot.base[:3, :3]
 
 
 @pytest.mark.parametrize("doc", [spray7, arm6])
