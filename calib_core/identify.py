@@ -210,7 +210,8 @@ class Calibration:
             "base_pose": {"position_mm": pb.tolist(), "rotation_matrix": Rb.tolist()},
             **({"setups": [{"setup": name, "base_pose": {"position_mm": p.tolist(), "rotation_matrix": R.tolist()}}
                            for name, (R, p) in zip(self.setup_names, poses)]} if lay.n_setups > 1 else {}),
-            "calibrated_model": m.to_dict(self.x[lay.geometry].reshape(m.n_joints, -1), self.x[lay.tools].reshape(-1, 3)),
+            "calibrated_model": m.to_dict(self.x[lay.geometry].reshape(m.n_joints, -1),
+                                          self.x[lay.tools].reshape(-1, 3)),
         }
 
     @property

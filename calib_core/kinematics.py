@@ -185,8 +185,8 @@ def _cross_into(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _row_parameters(g: np.ndarray) -> list[tuple]:
     """Per row (a, alpha, d, theta, beta, gamma, b) from the geometry block (n, G) of one parameter vector, as
-    floats; of B vectors (B, n, G), a parameter equal in all of them is a float too, else its values as (B, 1) (they then
-    broadcast against a batch of poses (3, B, N))."""
+    floats; of B vectors (B, n, G), a parameter equal in all of them is a float too, else its values as (B, 1)
+    (they then broadcast against a batch of poses (3, B, N))."""
     if g.ndim == 2:
         return g.tolist()
     same = (g == g[0]).all(0).tolist()
@@ -293,8 +293,8 @@ class Chain:
         Rbase, obase = _first(self.Rb, 2), _first(self.base_origin)
         if S == 1:
             Rbase, obase = Rbase[..., None], obase[..., None]
-        # per row, components first (n, 3, N): x axis / origin of frame i-1, z axis / origin after Tx(a), origin
-        # after Tz(d); the rotation of each joint frame as its axes (n, 3, 3, N) [axis, component]; y_beta is its y
+        # per row, components first (n, 3, N): x axis / origin of frame i-1, z axis / origin on the joint axis (after
+        # Tx(a) Ry(gamma) Ty(b)), origin after Tz(d), the y axis gamma and b act about / along; the rotation of each joint frame as its axes (n, 3, 3, N) [axis, component]; y_beta is its y
         self._x_prev, self._o_prev, self._z_axis, self._o_theta, self._o_beta, self._y_prev = \
             np.empty((6, n, 3, *lead, N))
         self._R = np.empty((n, 3, 3, *lead, N))

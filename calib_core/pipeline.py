@@ -49,7 +49,8 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
                 state[key] = without_virtual(model, np.array(state[key])).tolist()
         lay = K.layout(given, np.array(state["x"]))
         x = np.array(state["x"])
-        out["calibrated_model"] = given.to_dict(x[lay.geometry].reshape(len(given.joint_names), -1), x[lay.tools].reshape(-1, 3))
+        out["calibrated_model"] = given.to_dict(x[lay.geometry].reshape(given.n_joints, -1),
+                                                x[lay.tools].reshape(-1, 3))
         n6 = sum(MARK in str(i) for i in meas.point_ids) // 3
         out["orientation"] = {"rows": n6, "lever_mm": LEVER_MM,
                               "note": f"{n6} rows carried an orientation; each entered the fit as three virtual "
