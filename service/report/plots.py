@@ -13,6 +13,7 @@ names, labels) goes through `_tx`, so a `$` is a dollar sign, never matplotlib m
 from __future__ import annotations
 
 import io
+import textwrap
 import threading
 from collections import OrderedDict
 
@@ -20,7 +21,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from .figures import finding_title, model_label, num, plot_list
+from .figures import accuracy, counted_word, finding_title, model_label, num, plot_list
 
 GEO = "#e08a2c"  # geometric model: orange
 FINAL = "#1f5fa8"  # final model: blue
@@ -102,6 +103,8 @@ def figure(answer: dict, name: str) -> Figure:
         k = int(name.split("-", 1)[1])
         axes = fig.subplots(1, 2, width_ratios=[2.2, 1])
         _finding(axes, d["findings"][k - 1], k)
+        fig.suptitle(_tx(textwrap.shorten(f"Finding {k}: {finding_title(d['findings'][k - 1])}", 110,
+                                          placeholder=" ...")), fontsize=10)
     for ax in axes:
         ax.grid(True, alpha=0.3, linewidth=0.6)
         for side in ("top", "right"):
@@ -126,8 +129,7 @@ def _errors(ax, answer: dict, d: dict) -> None:
     geo, fin = _arr(pp["geometric_holdout_mm"]), _arr(pp["final_holdout_mm"])
     n = len(geo)
     same = list(answer.get("model") or []) == ["geometric"]
-    geo_label = f"geometric model, RMS {_rms(geo):.3f} mm"
-    fin_label = _tx(f"{model_label(answer['model'])}, RMS {_rms(fin):.3f} mm") if not same else ""
+    geo_label, fin_label = _labels(answer, same)
     if n <= BARS_MAX:
         x = np.arange(1, n + 1)
         ax.bar(x, geo, width=1.0, color=GEO, alpha=0.55, label=geo_label)
@@ -153,9 +155,18 @@ def _errors(ax, answer: dict, d: dict) -> None:
     ax.legend(fontsize=8, loc="upper right", frameon=False)
 
 
-def _rms(v: np.ndarray) -> float:
-    ok = v[np.isfinite(v)]
-    return float(np.sqrt(np.mean(ok**2))) if len(ok) else float("nan")
+def _labels(answer: dict, same: bool) -> tuple[str, str]:
+    """The legend of the geometric and the final model: RMS over every pose, quoted from the answer's accuracy
+    table (`holdout_all`, the figure the report's headline shows), never recomputed here."""
+    acc = answer.get("accuracy") or accuracy(answer)
+    rows = acc["models"]
+    word = counted_word(acc["counts"])
+
+    def label(name: str, row: dict) -> str:
+        v = num(row["holdout_all"]["rms_mm"])
+        return _tx(name if v is None else f"{name}, RMS {v:.3f} mm over all {row['holdout_all']['n']} {word}")
+    geo = label("geometric model", rows[0])
+    return geo, ("" if same else label(model_label(answer["model"]), rows[-1]))
 
 
 def _grouped(v: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -177,12 +188,13 @@ def _distribution(ax, answer: dict, d: dict) -> None:
     top = float(both.max()) if len(both) else 1.0
     bins = np.linspace(0.0, top * 1.02 + 1e-9, 31)
     same = list(answer.get("model") or []) == ["geometric"]
-    ax.hist(geo[np.isfinite(geo)], bins=bins, color=GEO, alpha=0.6, label="geometric model")
+    geo_label, fin_label = _labels(answer, same)
+    ax.hist(geo[np.isfinite(geo)], bins=bins, color=GEO, alpha=0.6, label=geo_label)
     if not same:
-        ax.hist(fin[np.isfinite(fin)], bins=bins, color=FINAL, alpha=0.75, label=_tx(model_label(answer["model"])))
+        ax.hist(fin[np.isfinite(fin)], bins=bins, color=FINAL, alpha=0.75, label=fin_label)
     _floor(ax, d, horizontal=False)
     ax.set_xlabel("held-out error per pose (mm)")
-    ax.set_ylabel("poses")
+    ax.set_ylabel(counted_word((answer.get("accuracy") or accuracy(answer))["counts"]))
     ax.set_title("How the error is spread over the poses", fontsize=10)
     ax.legend(fontsize=8, loc="upper right", frameon=False)
 
@@ -195,6 +207,14 @@ def _finding(axes, f: dict, k: int) -> None:
     p = f["plot"]
     x, r, fit = _arr(p["x"]), _arr(p["residual_mm"]), _arr(p.get("fit_mm"))
     kind = _tx(str(f.get("kind", "")).replace("_", " "))
+    x_label = _tx(p.get("x_label") or "regressor")
+    fx = x[np.isfinite(x)]
+    if len(fx) == 0 or float(np.ptp(fx)) <= 1e-9 * max(1.0, float(np.abs(fx).max())):
+        # the regressor does not vary over the poses (every point would sit on one x): by measurement order
+        const = f"{fx[0]:.3g}" if len(fx) else "undefined"
+        x = np.arange(1, len(r) + 1, dtype=float)
+        x_label = _tx(f"calibration pose (measurement order; {p.get('x_label') or 'its regressor'} is {const} at "
+                      f"every pose)")
     many = len(x) > 1000
     ax.scatter(x, r, s=3 if many else 14, color=RESID, alpha=0.5 if many else 0.8, linewidths=0,
                label="residual before this finding")
@@ -202,9 +222,9 @@ def _finding(axes, f: dict, k: int) -> None:
     if has_fit:
         ax.scatter(x, fit, s=2 if many else 8, color=FIT, linewidths=0, label=f"fitted {kind}")
     ax.axhline(0.0, color="black", linewidth=0.6)
-    ax.set_xlabel(_tx(p.get("x_label") or "regressor"))
+    ax.set_xlabel(textwrap.fill(x_label, 70))
     ax.set_ylabel("along the effect's direction (mm)")
-    ax.set_title(_tx(f"Finding {k}: {finding_title(f)}"), fontsize=10)
+    ax.set_title("Residual and fitted effect", fontsize=9)
     ax.legend(fontsize=8, loc="upper left" if many else "best", frameon=False)  # "best" is O(points)
     if has_fit:
         ok = np.isfinite(r) & np.isfinite(fit)
@@ -217,7 +237,7 @@ def _finding(axes, f: dict, k: int) -> None:
                      va="top", fontsize=9)
         ax2.set_xlabel(f"fitted {kind} (mm)")
         ax2.set_ylabel("residual (mm)")
-        ax2.set_title("Does the effect explain it?", fontsize=10)
+        ax2.set_title("Does it explain the residual?", fontsize=9)
         ax2.legend(fontsize=8, loc="lower right", frameon=False)
     else:
         ax2.set_axis_off()
