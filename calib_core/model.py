@@ -6,6 +6,7 @@ exactly to MD-H (Craig / Hayati) so that one kinematics and one Jacobian serve b
 """
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from dataclasses import dataclass, field
@@ -415,6 +416,30 @@ def _vector(errors, fieldname, value, n=3, bound: float | None = None, text: str
     return None if any(v is None for v in out) else np.array(out, dtype=float)
 
 
+MODEL_KEYS = ("name", "convention", "units", "joints", "tool", "targets", "gravity", "meta", "urdf", "calibration")
+"""The keys a model document may carry: the contract's (sections 1 and 5), `meta` (the user's own free-form data),
+and the two objects the project writes into the documents it answers (`urdf`, the import's extension;
+`calibration`, a calibrated model's effects and base pose), so an answer can be posted back."""
+JOINT_KEYS = ("name", "type", *GEOMETRIC, "xyz", "rpy", "axis", "limits", "mass", "com", "parent", "coupled", "meta")
+TARGET_KEYS = ("name", "parent", "xyz", "meta")
+UNIT_KEYS = ("length", "angle")
+
+
+def _unknown_keys(errors: list, where: str, obj, allowed: tuple[str, ...]) -> None:
+    """A 422 entry for every key of `obj` (a dict) that `allowed` does not hold, with the nearest valid key: a
+    misspelt key must never change the robot silently (contract section 1)."""
+    if not isinstance(obj, dict):
+        return
+    for k in obj:
+        if k in allowed:
+            continue
+        near = difflib.get_close_matches(str(k), allowed, n=1, cutoff=0.6)
+        hint = f"did you mean '{near[0]}'? " if near else ""
+        errors.append({"field": f"{where}.{k}" if where else str(k), "value": k,
+                       "message": f"unknown key; {hint}valid here: {', '.join(allowed)} (free-form data of your "
+                                  "own goes under 'meta')"})
+
+
 def parse_model(doc: dict) -> RobotModel:
     """Validate contract model JSON and build a RobotModel; raises ModelError listing every problem."""
     errors: list[dict] = []
@@ -430,6 +455,12 @@ def parse_model(doc: dict) -> RobotModel:
         why = name_problem(name, what="robot name", max_chars=MAX_NAME_CHARS, csv_column=False)
         if why:
             errors.append({"field": "name", "value": name, "message": why})
+    _unknown_keys(errors, "", doc, MODEL_KEYS)
+    _unknown_keys(errors, "units", doc.get("units"), UNIT_KEYS)
+    for j, jd in enumerate(doc.get("joints") if isinstance(doc.get("joints"), list) else []):
+        _unknown_keys(errors, f"joints[{j}]", jd, JOINT_KEYS)
+    for k, t in enumerate(doc.get("targets") if isinstance(doc.get("targets"), list) else []):
+        _unknown_keys(errors, f"targets[{k}]", t, TARGET_KEYS)
     convention = doc.get("convention", "mdh")
     if not isinstance(convention, str) or convention not in ("mdh", "dh"):
         errors.append({"field": "convention", "value": convention, "message": "must be 'mdh' or 'dh'"})

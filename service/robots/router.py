@@ -7,7 +7,7 @@ from starlette.routing import Match
 from sqlalchemy.orm import Session
 
 from ..deps import WriteRoute, get_read_session, get_session, require_writer
-from ..problems import problem_responses
+from ..problems import ProblemError, problem_responses
 from . import service
 from .schemas import SPRAY7_EXAMPLE, RobotOut
 
@@ -31,6 +31,27 @@ class XmlBodyRoute(WriteRoute):
 
 async def _raw_body(request: Request) -> bytes:
     return await request.body()
+
+
+URDF_QUERY = ("base", "targets", "length_unit", "angle_unit", "smr")
+"""The URDF upload's options: any other query parameter is a 422 (a misspelt `target=` must not fall back to the
+default target silently)."""
+
+
+def _known_query(request: Request) -> None:
+    """422 naming every query parameter the URDF upload does not take, with the nearest one it does."""
+    import difflib
+
+    errors = []
+    for k in request.query_params:
+        if k not in URDF_QUERY:
+            near = difflib.get_close_matches(k, URDF_QUERY, n=1, cutoff=0.6)
+            errors.append({"field": f"query.{k}", "value": request.query_params[k],
+                           "message": f"unknown option; {f'did you mean {near[0]!r}? ' if near else ''}the URDF "
+                                      f"upload takes {', '.join(URDF_QUERY)}"})
+    if errors:
+        raise ProblemError(422, f"{len(errors)} unknown option{'s' * (len(errors) != 1)}; nothing was stored",
+                           kind="invalid-urdf", errors=errors)
 
 
 def create_robot_urdf(response: Response, body: bytes = Depends(_raw_body),
@@ -57,7 +78,7 @@ def create_robot_urdf(response: Response, body: bytes = Depends(_raw_body),
 
 # registered before the JSON route of the same path: XmlBodyRoute lets every non-XML request through to it
 router.add_api_route("/robots", create_robot_urdf, methods=["POST"], status_code=201, response_model=RobotOut,
-                     dependencies=[Depends(require_writer)], route_class_override=XmlBodyRoute,
+                     dependencies=[Depends(require_writer), Depends(_known_query)], route_class_override=XmlBodyRoute,
                      include_in_schema=False, summary="Store a robot model given as URDF (contract section 5)")
 
 

@@ -193,3 +193,35 @@ def test_wrong_kinds_are_named_in_plain_words(mutate, field):
         parse_model(doc)
     assert any(e["field"] == field for e in exc.value.errors), exc.value.errors
     assert "unhashable" not in str(exc.value)
+
+
+@pytest.mark.parametrize("mutate, field, nearest", [
+    (lambda d: d.update(convetion=d.pop("convention", "mdh")), "convetion", "convention"),
+    (lambda d: d.update(Joints=[]), "Joints", "joints"),
+    (lambda d: d.update(gravty=[0, 0, -9.81]), "gravty", "gravity"),
+    (lambda d: d.update(tools=[0, 0, 100]), "tools", "tool"),
+    (lambda d: d["units"].update(lenght="m"), "units.lenght", "length"),
+    (lambda d: d["joints"][1].update(alpah=3.0), "joints[1].alpah", "alpha"),
+    (lambda d: d["joints"][2].update(masss=1.0), "joints[2].masss", "mass"),
+    (lambda d: d["joints"][3].update(limit=[-10, 10]), "joints[3].limit", "limits"),
+    (lambda d: d["joints"][0].update(parnet="base"), "joints[0].parnet", "parent"),
+    (lambda d: d["joints"][4].update(coupling={"J2": 1.0}), "joints[4].coupling", "coupled"),
+    (lambda d: d.pop("tool") and d.update(targets=[{"name": "t", "parent": "J7", "xzy": [0, 0, 1]}]),
+     "targets[0].xzy", "xyz"),
+])
+def test_a_misspelt_key_is_refused_with_the_nearest_valid_one(mutate, field, nearest):
+    """A typo must never calibrate another robot (issue 31: "convetion": "dh" was read as MD-H; "alpah" made alpha
+    0): every key at every level is one the contract or the docs define, else a 422 naming it and the nearest."""
+    doc = spray7()
+    mutate(doc)
+    errs = _errors(doc)
+    assert any(e["field"] == field and f"did you mean '{nearest}'" in e["message"] for e in errs), errs
+
+
+def test_the_users_own_data_goes_under_meta():
+    doc = spray7()
+    doc["meta"] = {"cell": "paint line 2", "serial": 4711}
+    doc["joints"][0]["meta"] = {"drive": "SEW"}
+    assert parse_model(doc).n_joints == len(doc["joints"])
+    doc["colour"] = "red"
+    assert [e["field"] for e in _errors(doc)] == ["colour"]

@@ -402,7 +402,7 @@ def test_robots_list_is_paged_with_total_and_links(server, model_doc):
 
 def test_robots_page_is_bounded_in_bytes(server, model_doc):
     """Two 5 MB models never come in one answer: the page ends early and links to the rest."""
-    big = dict(model_doc, notes="x" * (5 * 1024 * 1024))
+    big = dict(model_doc, meta={"notes": "x" * (5 * 1024 * 1024)})
     ids = [server.client.post("/robots", json=big).json()["id"] for _ in range(2)]
     total = int(server.client.get("/robots?limit=1").headers["x-total-count"])
     r = server.client.get(f"/robots?limit=1000&offset={total - 2}")
@@ -425,7 +425,7 @@ def test_model_cache_is_bounded_by_bytes(model_doc):
             assert cache.bytes <= cache.max_bytes
         assert len(cache) == 10 and cache.bytes == 10 * size
         assert service.model_of(robots[-1]) is service.model_of(robots[-1])  # a hit
-        huge = SimpleNamespace(id="huge", model_json=dict(model_doc, notes="x" * (20 * size)))
+        huge = SimpleNamespace(id="huge", model_json=dict(model_doc, meta={"notes": "x" * (20 * size)}))
         service.model_of(huge)  # larger than the whole cache: parsed, not kept
         assert cache.get("huge") is None and cache.bytes <= cache.max_bytes
     finally:

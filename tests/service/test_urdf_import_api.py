@@ -109,3 +109,25 @@ def test_cli_prints_notes_and_takes_smr(tmp_path, capsys):
     xacro.write_text(SMALL_XACRO)
     assert main(["import-urdf", str(xacro), "-o", str(out2)]) == 1
     assert XACRO_HINT in capsys.readouterr().err and not out2.exists()
+
+
+def test_a_misspelt_key_or_option_is_refused_and_nothing_is_stored(server):
+    """Issue 31: a typo never calibrates another robot. A model key (top level, joint, target, units) and a URDF
+    upload option each get a 422 naming it and the nearest valid one; nothing is stored."""
+    from calib_core.robots import spray7
+
+    c = server.client
+    before = count(c)
+    doc = spray7()
+    doc["convetion"] = "dh"
+    doc["joints"][1]["alpah"] = 3.0
+    doc["units"]["lenght"] = "m"
+    r = c.post("/robots", json=doc)
+    assert r.status_code == 422, r.text
+    fields = {e["field"]: e["message"] for e in r.json()["errors"]}
+    assert "did you mean 'convention'" in fields["convetion"] and "did you mean 'alpha'" in fields["joints[1].alpah"]
+    assert "did you mean 'length'" in fields["units.lenght"]
+    r = c.post("/robots?target=tool", content=LENIENT.encode(), headers=XML)
+    assert r.status_code == 422, r.text
+    assert r.json()["errors"][0]["field"] == "query.target" and "'targets'" in r.json()["errors"][0]["message"]
+    assert count(c) == before
