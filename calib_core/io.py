@@ -69,6 +69,7 @@ class Measurements:
     setup_names: tuple[str, ...] = ("",)
     orientation: np.ndarray | None = None  # (N, 4) unit quaternion w, x, y, z of the target frame; NaN: a point row
     tau: np.ndarray | None = None  # (N, n) measured joint torque N*m / force N per model row; NaN where not given
+    sigma_source: str | None = None  # where `sigma` came from when not from the CSV (6-D rows: the instrument preset)
 
     @property
     def n_poses(self) -> int:
@@ -81,7 +82,7 @@ class Measurements:
     def noise_source(self) -> str:
         """Which noise model the fit weights and the noise floor use, in words."""
         if self.sigma is not None:
-            return "the CSV's sigma column"
+            return self.sigma_source or "the CSV's sigma column"
         said = "" if self.instrument else ", assumed: no sigma column and no instrument given"
         return f"the {instrument(self.instrument).describe()} preset{said}"
 
@@ -124,7 +125,7 @@ class Measurements:
         return Measurements(self.joints[idx], self.points[idx], ids, pick(self.timestamp),
                             pick(self.temperature), pick(self.payload), pick(self.sigma), self.instrument,
                             target=pick(self.target), setup=pick(self.setup), setup_names=self.setup_names,
-                            orientation=pick(self.orientation), tau=pick(self.tau))
+                            orientation=pick(self.orientation), tau=pick(self.tau), sigma_source=self.sigma_source)
 
 
 def _decode(data: bytes | str) -> str:

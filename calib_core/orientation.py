@@ -83,8 +83,18 @@ def with_orientation(model: RobotModel, meas: Measurements, lever_mm: float = LE
                        timestamp=pick(meas.timestamp), temperature=pick(meas.temperature), payload=pick(meas.payload),
                        sigma=np.r_[sig_pt, np.concatenate(add_sigma)], instrument=meas.instrument,
                        target=np.r_[target, np.concatenate(add_target)], setup=pick(meas.setup),
-                       setup_names=meas.setup_names, orientation=None, tau=pick(meas.tau))
+                       setup_names=meas.setup_names, orientation=None, tau=pick(meas.tau),
+                       sigma_source=_sigma_source(meas))
     return virtual, out
+
+
+def _sigma_source(meas: Measurements) -> str:
+    """What the expanded rows' sigma comes from: the CSV's own column, or the instrument preset (the virtual points'
+    sigma is computed from it here, which must not read as a CSV column: the iiwa's answer said "from the CSV's
+    sigma column" of a CSV that has none)."""
+    said = meas.noise_source()
+    return f"{said}; orientation noise from the {instrument(meas.instrument).name} preset" if meas.sigma is not None \
+        else f"{said}, orientation noise included"
 
 
 def _offset(R_end: np.ndarray, Rbase: np.ndarray, Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -28,13 +28,14 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
     if mode not in MODES:
         raise ValueError(f"unknown model {mode!r}; use one of {MODES}")
     report = progress or (lambda fraction, message: None)
-    given = model
+    given, rows = model, meas
     model, meas = with_orientation(model, meas)
     if mode == "auto":
         d = diagnose(model, meas, progress=report, deadline=deadline)
         cal = d.calibration
         out = cal.to_dict()
         out["diagnosis"] = d.to_dict()
+        _mark_plannable(given, rows, cal.robot.effects, out["diagnosis"].get("findings") or [])
     else:
         report(0.05, "choosing the geometric model on held-out poses")
         selection = select_geometry(model, meas)
@@ -58,3 +59,16 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
                                       "metrics count them), weighted by the instrument's orientation noise"}
     out["robot_state"] = state
     return out
+
+
+def _mark_plannable(model: RobotModel, meas: Measurements, effects, findings: list[dict]) -> None:
+    """Each look-alike of a finding gets `plannable`: whether `POST /robots/{id}/plan {"purpose": "diagnosis"}`
+    can plan poses that split it from the finding (calib_core.plan.plannable, on the model and rows the plan
+    service reads: the uploaded ones, not the 6-D rows' virtual points)."""
+    from .plan import plannable  # plan imports the diagnosis; imported here, only when a finding lists look-alikes
+
+    if not any(f.get("indistinguishable_from") for f in findings):
+        return
+    for f, flags in zip(findings, plannable(model, meas, effects, findings)):
+        for a, ok in zip(f.get("indistinguishable_from") or [], flags):
+            a["plannable"] = bool(ok)

@@ -456,21 +456,41 @@ def lookalike_pairs(model: RobotModel, meas: Measurements, effects, findings: li
     the calibration's `effects`, the look-alike from the diagnosis's candidates for this set matched on kind,
     joints and harmonic (a cyclic error of unnamed harmonic: the lowest), `nested` pairs left out; at most
     MAX_RIVAL_PAIRS."""
+    out = []
+    for rivals in _rebuilt(model, meas, effects, findings):
+        for pair in rivals:
+            if pair is not None and pair not in out:
+                out.append(pair)
+    return out[:MAX_RIVAL_PAIRS]
+
+
+def plannable(model: RobotModel, meas: Measurements, effects, findings: list[dict]) -> list[list[bool]]:
+    """Per finding, per entry of its `indistinguishable_from`: whether a diagnosis plan (`lookalike_pairs`) can
+    split the two, i.e. whether the pair is rebuilt from the stored calibration and not `nested`. The calibration
+    answer carries it, so a client asks for a plan only where one can be made: the Motoman's joint_scale[S1] ~
+    link_deflection[...] (a lateral compliance on the load identified from the data, which the plan's candidates
+    do not hold) was announced as a plan, and the plan answered 422 "nothing to split"."""
+    return [[pair is not None for pair in rivals] for rivals in _rebuilt(model, meas, effects, findings)]
+
+
+def _rebuilt(model: RobotModel, meas: Measurements, effects, findings: list[dict]
+             ) -> list[list[tuple[Effect, Effect] | None]]:
+    """Per finding, per look-alike: (found effect, look-alike effect), or None where either is not rebuilt or they
+    are nested."""
     names = lambda e: [model.joint_names[j] for j in e.joints]  # noqa: E731
-    pool = effect_candidates(model, meas)[0]
+    pool = effect_candidates(model, meas)[0] if any(f.get("indistinguishable_from") for f in findings) else []
     # a cause without a named harmonic matches the lowest (the candidates list them in order)
     same = lambda e, d: (e.kind == d.get("kind") and names(e) == list(d.get("joints", []))  # noqa: E731
                          and d.get("harmonic", e.harmonic) == e.harmonic)
     out = []
     for f in findings:
         mine = next((e for e in effects if same(e, f)), None)
-        if mine is None:
-            continue
+        rivals = []
         for a in f.get("indistinguishable_from") or []:
-            rival = next((e for e in pool if same(e, a) and e != mine), None)
-            if rival is not None and not nested(mine, rival) and (mine, rival) not in out:
-                out.append((mine, rival))
-    return out[:MAX_RIVAL_PAIRS]
+            rival = None if mine is None else next((e for e in pool if same(e, a) and e != mine), None)
+            rivals.append((mine, rival) if rival is not None and not nested(mine, rival) else None)
+        out.append(rivals)
+    return out
 
 
 def _columns_like(meas: Measurements, q: np.ndarray, labels: K.Labels | None, rng: np.random.Generator

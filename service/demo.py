@@ -42,6 +42,8 @@ N_CAL, N_VAL = 150, 100
 N_PLAN = 50
 """Of the simulated campaign's N_CAL calibration poses, this many are planned by POST /robots/{id}/plan (D-optimal
 for the geometry); the rest are random, the spread over the workspace the diagnosis compares causes on."""
+REACH_MM = 1e-3
+"""POST /calibrations/{id}/compensate's tolerance (calib_core.compensate's tol_mm): `reachable` means within it."""
 N_SPLIT = 30
 """Poses planned (purpose `diagnosis`) to tell apart look-alike causes when the diagnosis lists some."""
 HOLDOUT_FRACTION = 0.3
@@ -87,23 +89,36 @@ def _stem(message: str | None) -> str:
 
 
 class ProgressBar:
-    """A text bar on stderr: redrawn in place on a terminal, one line per new message otherwise."""
+    """A text bar on stderr: redrawn in place on a terminal, one line per new message otherwise (and one every
+    LOG_EVERY_S while a step lasts, so a log shows the demo alive).
 
-    def __init__(self, stream=sys.stderr, width: int = 30):
-        self.stream, self.width = stream, width
+    The fraction shown never goes back (a job's later stage can report less than an earlier one: the Motoman's bar
+    went 78 % -> 36 %), and the time shown is the wall time since the bar started, queue included, from the demo's
+    own clock (the worker's message carries the job's run time, which stood still while the job was queued)."""
+
+    LOG_EVERY_S = 30.0
+
+    def __init__(self, stream=sys.stderr, width: int = 30, clock=time.monotonic):
+        self.stream, self.width, self.clock = stream, width, clock
         self.tty = hasattr(stream, "isatty") and stream.isatty()
         self.last = None
+        self.shown = 0.0  # the largest fraction shown so far
+        self.t0 = clock()
+        self.logged = self.t0
 
     def update(self, fraction: float, message: str | None) -> None:
-        fraction = min(max(float(fraction or 0.0), 0.0), 1.0)
-        n = int(round(fraction * self.width))
-        line = f"  [{'#' * n}{'.' * (self.width - n)}] {100 * fraction:3.0f} %  {message or ''}"
+        self.shown = max(self.shown, min(max(float(fraction or 0.0), 0.0), 1.0))
+        n = int(round(self.shown * self.width))
+        now = self.clock()
+        stem = _stem(message)
+        line = f"  [{'#' * n}{'.' * (self.width - n)}] {100 * self.shown:3.0f} %  {now - self.t0:5.1f} s  {stem}"
         if self.tty:
             self.stream.write("\r" + line[:WIDTH].ljust(WIDTH))
             self.stream.flush()
-        elif _stem(message) != _stem(self.last):  # a log gets a line per step, not per elapsed-time tick
-            self.stream.write(line + "\n")
+        elif stem != _stem(self.last) or now - self.logged >= self.LOG_EVERY_S:
+            self.stream.write(line + "\n")  # a log gets a line per step (and per LOG_EVERY_S), not per poll
             self.stream.flush()
+            self.logged = now
         self.last = message
 
     def close(self) -> None:
@@ -186,8 +201,13 @@ class Api:
         """job_wait_s: how long `wait` waits for a job; the server's own job time limit plus the queue's time
         (a client limit below the server's cut an hour-long job at 600 s)."""
         headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self.c = httpx.Client(base_url=url, timeout=120, headers=headers)
+        self.refused: list[str] = []  # every call the service answered with a 4xx or 5xx: 'POST /path -> 422'
+        self.c = httpx.Client(base_url=url, timeout=120, headers=headers, event_hooks={"response": [self._seen]})
         self.job_wait_s = job_wait_s
+
+    def _seen(self, r: httpx.Response) -> None:
+        if r.status_code >= 400:
+            self.refused.append(f"{r.request.method} {r.request.url.path} -> {r.status_code}")
 
     def close(self) -> None:
         self.c.close()
@@ -395,10 +415,42 @@ def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None
     held_out = f"{len(val_idx)} poses ({share})" if n_units == meas.n_poses else \
         f"{len(val_idx)} rows (the targets of {n_val_units} poses together, {share})"
     return Campaign(doc, model, upload, meas.subset(cal_idx), meas.subset(val_idx),
-                    source=f"{data} ({meas.n_poses} measured poses) and the model {robot}",
+                    source=f"{data} ({counted(meas)}) and the model {robot}",
                     validation=f"{held_out} held out at random (seed {seed}) before the upload, never seen by the "
                                "service",
                     n_total=meas.n_poses)
+
+
+def _n_poses(meas: Measurements) -> int:
+    """Poses of the robot: the rows measuring several targets at one placement count once (Measurements.pose_index)."""
+    return int(meas.pose_index().max()) + 1 if meas.n_poses else 0
+
+
+def _unit(meas: Measurements) -> str:
+    """What a row of `meas` is: a pose (one target per placement), else a row (one target of a pose)."""
+    return "poses" if _n_poses(meas) == meas.n_poses else "rows"
+
+
+def counted(meas: Measurements, brief: bool = False) -> str:
+    """What the rows of a measurement set are, in words: poses, or rows of several targets (markers) per pose; the
+    6-D rows and the points the fit makes of them. Agile Justin's "1000 measured poses" were 500 poses x 2 markers,
+    the iiwa's 554 rows 2216 points in the answer's metrics."""
+    from calib_core.orientation import LEVER_MM
+
+    rows, poses = meas.n_poses, _n_poses(meas)
+    if poses == rows:
+        out = f"{rows} measured poses"
+    else:
+        per = np.bincount(meas.pose_index())
+        targets = len(np.unique(meas.target)) if meas.target is not None else 1
+        out = (f"{rows} rows: {poses} poses x {per[0]} targets (markers)" if (per == per[0]).all() else
+               f"{rows} rows: {poses} poses, {per.min()} to {per.max()} of the {targets} targets (markers) each")
+    if meas.orientation is not None and (n6 := int((~np.isnan(meas.orientation[:, 0])).sum())):
+        each = "each" if n6 == rows else f"{n6} of them"
+        out += (f" ({'' if n6 == rows else f'{n6} '}6-D: {rows + 3 * n6} points in the fit)" if brief else
+                f"; {each} 6-D (a point and an orientation): the fit takes each 6-D row as its point and 3 virtual "
+                f"points {LEVER_MM:g} mm along the measured axes, {rows + 3 * n6} points in all")
+    return out
 
 
 # ----------------------------------------------------------------------------------------------- story
@@ -467,6 +519,9 @@ def _story(args, settings: Settings, camp: Campaign | None, seed: int, log: Path
         return _chapters(args, api, server, camp, seed, t_start, chapter)
     finally:
         api.close()
+        if api.refused:  # the story never asks what its own answers rule out: a refusal is a bug of the demo's
+            print(f"calib demo: the service refused {len(api.refused)} of the demo's own calls: "
+                  f"{'; '.join(api.refused[:10])}", file=sys.stderr, flush=True)
         if args.keep_serving:
             say("")
             say(f"The service keeps running on {server.url} (report, /docs); Ctrl-C stops it.")
@@ -512,14 +567,14 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
             f"{camp.cal.n_poses - camp.n_planned} random ones within the joint limits (the spread over the "
             f"workspace the diagnosis compares causes on). Validation: {camp.validation}.", 3)
     else:
-        say(f"Calibration poses: {camp.cal.n_poses}, uploaded. Validation: {camp.validation}.", 3)
+        say(f"Uploaded for calibration: {counted(camp.cal, brief=True)}. Validation: {camp.validation}.", 3)
     params = {"limits": getattr(args, "limits", "reject")}
     if getattr(args, "instrument", None):
         params["instrument"] = args.instrument
     ms = api.call("POST", f"/robots/{robot['id']}/measurements", (201,), params=params,
                   files={"file": ("campaign.csv", camp.csv_text.encode(), "text/csv")}).json()
     say(("" if camp.n_planned else f"POST /robots -> robot {robot['id']}; ") +
-        f"POST /robots/{{id}}/measurements -> {ms['n_poses']} poses stored (set {ms['id']}).", 3)
+        f"POST /robots/{{id}}/measurements -> {ms['n_poses']} {_unit(camp.cal)} stored (set {ms['id']}).", 3)
     for o in ms.get("out_of_limits") or []:
         say(f"--limits warn: {o['joint']} outside its limits [{o['limits'][0]}, {o['limits'][1]}] {o['unit']} on "
             f"{o['rows']} row(s); the data span {o['min']:g} to {o['max']:g} {o['unit']}.", 3)
@@ -541,7 +596,8 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
         f"{len(cal['parameters'])} parameters.", 3)
     _observed(cal)
 
-    chapter(f"What the service found (errors on the {camp.val.n_poses} validation poses)")
+    chapter(f"What the service found (errors on the {camp.val.n_poses} validation {_unit(camp.val)}"
+            + ("" if _unit(camp.val) == "poses" else f", {_n_poses(camp.val)} poses") + ")")
     before = evaluate(identify(model, camp.cal, free=("base", "tool"), folds=1), camp.val)
     geo_pred = api.predict_mm(geo_cal["id"], model, camp.val)
     ext_pred = api.predict_mm(cal_id, model, camp.val)
@@ -561,8 +617,8 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
         verdict = ("the residual has structure a better model can remove" if ratio >= 1.25 else
                    "that is the noise floor: nothing is left to explain")
         say(f"What the geometric model still gets wrong: on the calibration poses (cross-validated) it leaves "
-            f"{fmm(g['holdout_rms_mm'])} RMS, {ratio:.1f}x the noise floor of {fmm(floor)} (tracker and "
-            f"repeatability): {verdict}.", 3)
+            f"{fmm(g['holdout_rms_mm'])} RMS, {ratio:.1f}x the noise floor of {fmm(floor)} "
+            f"({d.get('noise_floor_basis') or 'instrument and repeatability'}): {verdict}.", 3)
     for k, f in enumerate(findings, 1):
         odd = ", not a physical size" if f.get("physical") is False else ""
         say(f"Cause {k} [{f['kind']}{odd}]: {cause_name(f)}. Held-out {fmm(f['holdout_rms_before_mm'])} -> "
@@ -587,7 +643,8 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
             f"RMS, for a measurement noise of {fmm(noise)} RMS.", 3)
 
     if any(f.get("indistinguishable_from") for f in findings):
-        chapter("Telling look-alike causes apart: POST /robots/{id}/plan {\"purpose\": \"diagnosis\"}")
+        chapter("Telling look-alike causes apart" + (": POST /robots/{id}/plan {\"purpose\": \"diagnosis\"}" if any(
+            _plannable(f, a) for f in findings for a in f.get("indistinguishable_from") or []) else ""))
         _split_lookalikes(api, robot["id"], ms["id"], camp, findings, seed)
 
     chapter("Compensation: POST /calibrations/{id}/compensate")
@@ -646,6 +703,12 @@ def _nested(f: dict, a: dict) -> bool:
     return f["kind"] == a["kind"] and f.get("harmonic") == a.get("harmonic") and (x <= y or y <= x)
 
 
+def _plannable(f: dict, a: dict) -> bool:
+    """Whether the answer says a diagnosis plan can split the finding from this look-alike (`plannable`, set by
+    calib_core.pipeline with calib_core.plan.plannable; an answer without it: unless nested)."""
+    return not _nested(f, a) and a.get("plannable", True) is not False
+
+
 def _together(findings: list[dict], a: str, b: str) -> bool:
     """Whether one finding still names both labels, as itself or as a look-alike."""
     return any({a, b} <= {_label(f), *map(_label, f.get("indistinguishable_from") or [])} for f in findings)
@@ -663,10 +726,18 @@ def _split_lookalikes(api: Api, robot_id: str, ms_id: str, camp: Campaign, findi
     if nested:
         say(f"{'; '.join(f'{_label(a)} is {_label(f)}' for f, a in nested)} on more joints: the richer form fits "
             "whatever the smaller one fits, so no pose can split them; the diagnosis keeps the smaller one.", 3)
-    if len(nested) == len(pairs):
+    unplanned = [(f, a) for f, a in pairs if not _nested(f, a) and not _plannable(f, a)]
+    if unplanned:
+        said = "; ".join(f"{_label(f)} ~ {a.get('form') or _label(a)}" for f, a in unplanned)
+        why = (": a cause fitted on a load identified from this set's data is not among the plan's candidates"
+               if all("identified load" in (a.get("form") or "") for _, a in unplanned) else "")
+        say(f"No pose plan can be asked for {said}: the answer marks the look-alike not `plannable` (the plan "
+            f"service cannot rebuild it from the stored calibration{why}).", 3)
+    planned = [(f, a) for f, a in pairs if _plannable(f, a)]
+    if not planned:
         return
-    say("The service plans the poses that best separate the others (T-optimal: the largest expected held-out "
-        "difference between the rivals).", 3)
+    say("The service plans the poses that best separate " + ("the others" if len(planned) < len(pairs) else "them") +
+        " (T-optimal: the largest expected held-out difference between the rivals).", 3)
     body = {"n_poses": N_SPLIT, "purpose": "diagnosis", "measurement_set_id": ms_id, "seed": seed}
     t0 = time.monotonic()
     r = api.c.post(f"/robots/{robot_id}/plan", json=body)
@@ -707,10 +778,9 @@ def _split_lookalikes(api: Api, robot_id: str, ms_id: str, camp: Campaign, findi
     named = "; ".join(_label(f) + "".join(f" ~ {_label(a)}" for a in f.get("indistinguishable_from") or [])
                       for f in after) or "none"
     say(f"Calibration {again['id']}: {named}.", 3)
-    for f, a in pairs:
-        if not _nested(f, a):
-            still = _together(after, _label(f), _label(a))
-            say(f"{_label(f)} vs {_label(a)}: {'still listed as look-alikes' if still else 'told apart'}.", 5)
+    for f, a in planned:
+        still = _together(after, _label(f), _label(a))
+        say(f"{_label(f)} vs {_label(a)}: {'still listed as look-alikes' if still else 'told apart'}.", 5)
     say("The rest of the story stays with the first calibration (the report, the compensation).", 3)
 
 
@@ -759,6 +829,7 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
         seeds, targets_mm = camp.val.joints, camp.val.points
     val = camp.val
     joints, resid = np.empty_like(seeds), np.full(len(seeds), np.nan)
+    reached, reasons = np.zeros(len(seeds), bool), [None] * len(seeds)
     for rows in _groups(val, by_payload=True):
         body = {"targets": (targets_mm[rows] / ls).tolist(), "seed_joints": _commands(model, seeds[rows]).tolist(),
                 **_pose_fields(model, val, rows)}
@@ -771,11 +842,16 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
         out = r.json()
         joints[rows] = model.expand_joints(np.asarray(out["joints"], float) * js[model.actuated])
         resid[rows] = [np.nan if v is None else v for v in out.get("residual_mm", [])]
-    n_ok = int(np.sum(resid < 0.01)) if len(resid) else 0
+        reached[rows] = out["reachable"]
+        for i, why in zip(rows, out["reason"]):
+            reasons[i] = why
+    n_ok = int(reached.sum())
     if camp.twin is None:
         say(f"{len(joints)} targets (the held-out measured points, their measured joints as seeds): the calibrated "
-            f"model reaches {n_ok} of them within 0.01 mm (largest model residual {np.nanmax(resid):.4f} mm). "
-            "Their real accuracy needs a re-measurement of the robot at the compensated joints.", 3)
+            f"model reaches {n_ok} of them (the answer's `reachable`: within {REACH_MM:g} mm; largest model "
+            f"residual {np.nanmax(resid):.4f} mm). Their real accuracy needs a re-measurement of the robot at the "
+            "compensated joints.", 3)
+        _unreached(reached, reasons, resid)
         return
     twin = camp.twin
     as_programmed = twin.measure(seeds).points  # the robot at the program's joints
@@ -784,8 +860,34 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
     say(f"{len(joints)} targets: where the robot program, using the nominal model, believes the validation poses "
         f"put the tool. Measured on the twin:", 3)
     table([("at the program's joints (uncompensated)", e0), ("at the compensated joints from the service", e1)])
-    say(f"The calibrated model reaches {n_ok} of {len(joints)} targets within 0.01 mm (largest model residual "
-        f"{np.nanmax(resid):.4f} mm); what is left is the robot's repeatability and the tracker noise.", 3)
+    say(f"The calibrated model reaches {n_ok} of {len(joints)} targets (the answer's `reachable`: within "
+        f"{REACH_MM:g} mm; largest model residual {np.nanmax(resid):.4f} mm); what is left is the robot's "
+        "repeatability and the tracker noise.", 3)
+    _unreached(reached, reasons, resid)
+
+
+def _why(reason: str | None) -> str:
+    """A compensation reason without its target's own figures, to count targets by it: 'not reachable: 0.310 mm
+    left after 30 iterations (needs A2 beyond its limit)' -> 'needs A2 beyond its limit'."""
+    if not reason:
+        return "no reason given"
+    m = re.fullmatch(r"not reachable: [\d.]+ mm left after \d+ iterations \((.*)\)", reason)
+    return m.group(1) if m else reason
+
+
+def _unreached(reached: np.ndarray, reasons: list, resid: np.ndarray) -> None:
+    """The targets not reached, counted by the answer's `reason` (largest residual of each)."""
+    miss = np.flatnonzero(~reached)
+    if not len(miss):
+        return
+    by: dict[str, list[int]] = {}
+    for i in miss:
+        by.setdefault(_why(reasons[i]), []).append(i)
+    say(f"Not reached: {len(miss)} target(s), by the answer's `reason`:", 3)
+    for why, idx in sorted(by.items(), key=lambda kv: -len(kv[1])):
+        left = resid[idx]
+        most = f"; up to {np.nanmax(left):.3f} mm left" if np.isfinite(left).any() else ""
+        say(f"{len(idx)} x {why}{most}", 5)
 
 
 def _reveal(camp: Campaign, findings: list[dict]) -> None:

@@ -86,7 +86,8 @@ def _rivals(model: RobotModel, meas: Measurements, cal: Calibration, robot: Cali
     pairs = lookalike_pairs(model, meas, robot.effects, findings)
     if not pairs:
         said = "lists no look-alike causes (no finding has indistinguishable_from)" if not any(
-            f.get("indistinguishable_from") for f in findings) else "lists look-alikes that cannot be rebuilt"
+            f.get("indistinguishable_from") for f in findings) else ("lists look-alikes no plan can split (nested "
+                                                                     "or not rebuilt: each has `plannable` false)")
         raise _invalid("body.measurement_set_id", ms_id, f"its newest auto calibration ({cal.id}) {said}: there is "
                        "nothing to split; plan `geometric` poses instead")
     return pairs
