@@ -177,3 +177,23 @@ def db_url(request, tmp_path):
         pytest.skip("CALIB_TEST_POSTGRES_URL is not set (.ci/run starts a PostgreSQL server)")
     reset_postgres(PG_URL)
     return PG_URL
+
+
+@pytest.fixture(scope="session")
+def motoman_demo(tmp_path_factory):
+    """`calib demo` on the Motoman MA1400 (real laser-tracker data), run once for every test that reads its story:
+    (stdout, stderr, folder with calib.db and motoman/model.json, measurements.csv)."""
+    from calib_core import datasets
+
+    from .test_demo import calib
+
+    if not datasets.available():
+        pytest.skip("the shared real datasets are not present")
+    tmp = tmp_path_factory.mktemp("motoman")
+    env = base_env(f"sqlite:///{tmp / 'calib.db'}")
+    r = calib("convert-dataset", "motoman_leica", str(tmp / "motoman"), cwd=tmp, env=env)
+    assert r.returncode == 0, r.stderr
+    r = calib("demo", "--robot", str(tmp / "motoman" / "model.json"), "--data",
+              str(tmp / "motoman" / "measurements.csv"), cwd=tmp, env=env)
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    return r.stdout, r.stderr, tmp

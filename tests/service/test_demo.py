@@ -210,17 +210,12 @@ def test_demo_tells_the_whole_story(tmp_path):
     assert ext_truth < 0.6 * camp.twin.noise_rms_mm(camp.val.joints)
 
 
-@pytest.mark.skipif(not datasets.available(), reason="the shared real datasets are not present")
-def test_demo_on_real_measurements(tmp_path):
-    env = base_env(f"sqlite:///{tmp_path / 'calib.db'}")
-    r = calib("convert-dataset", "motoman_leica", str(tmp_path / "motoman"), cwd=tmp_path, env=env)
-    assert r.returncode == 0, r.stderr
+def test_demo_on_real_measurements(motoman_demo):
+    out, err, tmp_path = motoman_demo  # one run, shared with test_demo_console.py
     model_file, data_file = tmp_path / "motoman" / "model.json", tmp_path / "motoman" / "measurements.csv"
-    r = calib("demo", "--robot", str(model_file), "--data", str(data_file), cwd=tmp_path, env=env)
-    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     camp = demo.from_files(model_file, data_file, 0)
     assert (camp.cal.n_poses, camp.val.n_poses) == (410, 176)
-    got = check_story(r.stdout, r.stderr, tmp_path, tmp_path / "calib.db", camp)
+    got = check_story(out, err, tmp_path, tmp_path / "calib.db", camp)
     story = got["story"]
     assert "on real measurements: robot motoman_ma1400_right_leica" in story
     assert "176 poses (30 %) held out at random (seed 0) before the upload" in story

@@ -154,27 +154,13 @@ def test_6d_rows_are_counted_and_their_noise_named_as_it_is():
 
 
 # ----------------------------------------------------------------------------------------------- the Motoman
+# one `calib demo` run on the Motoman, shared with test_demo.py (conftest.motoman_demo)
 
-@pytest.fixture(scope="module")
-def motoman(tmp_path_factory):
-    """`calib demo` on the Motoman MA1400 (real laser-tracker data) once for the module: (stdout, stderr, db)."""
-    if not datasets.available():
-        pytest.skip("the shared real datasets are not present")
-    tmp = tmp_path_factory.mktemp("motoman")
-    env = base_env(f"sqlite:///{tmp / 'calib.db'}")
-    r = calib("convert-dataset", "motoman_leica", str(tmp / "motoman"), cwd=tmp, env=env)
-    assert r.returncode == 0, r.stderr
-    r = calib("demo", "--robot", str(tmp / "motoman" / "model.json"), "--data",
-              str(tmp / "motoman" / "measurements.csv"), cwd=tmp, env=env)
-    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
-    return r.stdout, r.stderr, tmp
-
-
-def test_the_motoman_demo_never_calls_what_its_answer_rules_out(motoman):
+def test_the_motoman_demo_never_calls_what_its_answer_rules_out(motoman_demo):
     """No call of the demo is refused (every 4xx and 5xx it gets is listed on stderr); a plan to split look-alikes
     is announced and asked for only where the answer marks them `plannable`, and the plan service agrees with the
     answer: it plans when one is, and says there is nothing to split when none is."""
-    out, err, tmp = motoman
+    out, err, tmp = motoman_demo
     story = flat(out)
     assert "refused" not in err and " answered 4" not in story and " answered 5" not in story, err + story
     cal_id = re.search(r"succeeded in [\d.]+ s: calibration ([0-9a-f-]{36}), model", story).group(1)
@@ -198,8 +184,8 @@ def test_the_motoman_demo_never_calls_what_its_answer_rules_out(motoman):
     assert "(586 measured poses)" in story and "Uploaded for calibration: 410 measured poses. Validation" in story
 
 
-def test_the_motoman_demo_progress_is_monotone_in_wall_time(motoman):
-    _, err, _ = motoman
+def test_the_motoman_demo_progress_is_monotone_in_wall_time(motoman_demo):
+    _, err, _ = motoman_demo
     shown = progress(err)
     assert len(shown) >= 3 and shown[-1][0] == 100, err
     bars, bar = [], []  # each bar (one per job the demo waits for with one) ends at 100 %
@@ -215,8 +201,8 @@ def test_the_motoman_demo_progress_is_monotone_in_wall_time(motoman):
     assert not re.search(r"\(\d+\.\d s\)$", err, re.M), err  # the job's own run time is not shown
 
 
-def test_the_motoman_demo_compensation_gives_every_reason(motoman):
-    out, _, _ = motoman
+def test_the_motoman_demo_compensation_gives_every_reason(motoman_demo):
+    out, _, _ = motoman_demo
     story = flat(out)
     m = re.search(r"(\d+) targets \(the held-out .*? reaches (\d+) of them \(the answer's `reachable`", story)
     assert m, story
