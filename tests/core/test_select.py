@@ -101,7 +101,9 @@ def test_shared_candidates_match_separate_identify(seed):
         assert np.all(gap <= 1e-3 * std + 1e-9 * np.abs(ref.x[ref.free])), gap / std
         assert np.array_equal(np.delete(cal.x, cal.free), np.delete(ref.x, ref.free))
         assert row["holdout_rms_mm"] == pytest.approx(ref.metrics()["holdout_rms_mm"], rel=1e-5)
-        assert cal.metrics()["sigma0"] == pytest.approx(ref.metrics()["sigma0"], rel=1e-6)
+        # sigma0 to 1e-5 relative: two warm starts converged 1.5e-6 apart in it on seed 1503552731 (the estimates
+        # within their tolerance above)
+        assert cal.metrics()["sigma0"] == pytest.approx(ref.metrics()["sigma0"], rel=1e-5)
         # the model error is the root of a variance beyond the noise: compare variances, to a 1e-5 share of the
         # noise's (a 0.0065 mm error, 0.1x the noise, differed 1.3e-5 relative on seed 1688728932)
         noise2 = float(np.median(meas.noise_sigma_mm())) ** 2
