@@ -1030,11 +1030,87 @@ def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> 
                                      + (f"{big:.3g} mm" if model.prismatic[j] else f"{np.degrees(big):.3g} deg"))
         if sizes:
             f["physical"] = False
+            limits = sorted({f"{PLAUSIBLE_TRAVEL_MM:g} mm" if "mm" in x else
+                             f"{np.degrees(PLAUSIBLE_TURN_RAD):.3g} deg" for x in sizes})
+            f["bound"] = (f"it would move {', '.join(sizes)} at a calibration pose, beyond the "
+                          f"{' or '.join(limits)} a real play, spring or bearing moves a joint")
             f["evidence"] += (f"; its size is not physical: it would move {', '.join(sizes)} at a calibration pose, "
                               f"where a real play, spring or bearing turns a joint by a fraction of a degree. The "
                               f"data determine what it predicts (held-out poses confirm it), not these values: it "
                               f"stands in for structure with no name here, or trades one joint's share against "
                               f"another's, so read it as a correction, not as the joint's")
+
+
+SIGNIFICANT_STD = 2.0
+"""A parameter's value is beyond its noise when it is more than this many std from zero: a joint of a finding on
+several joints carries a share only then, and a compliance below -SIGNIFICANT_STD std is negative for sure."""
+FOLLOWS = {"joint_compliance": "the load on {j}", "backlash": "the sign of the load on {j}",
+           "link_deflection": "the bending load on {j}", "cyclic_joint_error": "the angle of {j}",
+           "joint_scale": "the travel of {j}", "axis_straightness": "the travel of {j}",
+           "thermal_drift": "time or temperature"}
+"""What a correction follows, in words, by the kind it was fitted as."""
+
+
+def follows_what(f: dict) -> str:
+    """What a finding's form follows, in words ('the load on R6'), by the kind it was fitted as."""
+    kind = f["follows"] if f.get("kind") == "correction" else f.get("kind", "")
+    j = ", ".join(f.get("joints") or [])
+    return FOLLOWS.get(kind, kind.replace("_", " ") + (" on {j}" if j else "")).format(j=j or "the robot")
+
+
+def _beyond(p: dict, k: float = SIGNIFICANT_STD) -> float:
+    """value / std of a parameter (0 where its std is undetermined)."""
+    std = p.get("std")
+    if std is None or not np.isfinite(std) or std <= 0 or p.get("value") is None:
+        return 0.0
+    return float(p["value"]) / float(std)
+
+
+def present_findings(cal: Calibration, findings: list[dict]) -> None:
+    """How the answer presents each finding, from the final model's parameter table (what is fitted is not touched).
+    A finding on several joints lists in `significant_joints` the joints whose own parameters are beyond
+    SIGNIFICANT_STD std of zero, and its evidence names the others. A finding that breaks its physical bound (a size
+    no real joint has, `_judge_sizes`; a joint compliance below -SIGNIFICANT_STD std: a spring never pushes back the
+    wrong way) is not presented under a physical name: its kind becomes "correction", with `follows` (the kind it
+    was fitted as), `physical` false, `bound` (the bound it breaks, with the numbers) and one plain sentence first
+    in its evidence: what it follows, what it gains held out, and why it is not a physical cause. A compliance whose
+    negative joints are all within SIGNIFICANT_STD std of zero stays physical."""
+    table = {p["name"]: p for p in cal.parameters()}
+    for f in findings:
+        if f.get("kind") in ("unexplained", "correction") or not f.get("parameters"):
+            continue
+        params = [{**p, **table.get(p["name"], {})} for p in f["parameters"]]
+        joints = list(f.get("joints") or [])
+        mine = {j: [p for p in params if p["name"].startswith(j + ".")] for j in joints}
+        if len(joints) > 1:
+            f["significant_joints"] = [j for j in joints if any(abs(_beyond(p)) > SIGNIFICANT_STD for p in mine[j])]
+            weak = [j for j in joints if j not in f["significant_joints"]]
+            if weak:
+                f["evidence"] += (f"; of its {len(joints)} joints only "
+                                  f"{', '.join(f['significant_joints']) or 'none'} carr"
+                                  f"{'ies' if len(f['significant_joints']) == 1 else 'y'} a share beyond "
+                                  f"{SIGNIFICANT_STD:g} std of zero ({', '.join(weak)} not)")
+        negative = [p for p in params if f["kind"] == "joint_compliance" and p["name"].endswith(".compliance")
+                    and _beyond(p) < -SIGNIFICANT_STD]
+        if negative:
+            who = [j for j in joints if any(p in negative for p in mine[j])] or [p["name"].split(".")[0]
+                                                                                 for p in negative]
+            said = ", ".join(f"{p['name']} = {p['value']:.3g} +/- {p['std']:.2g}"
+                             f"{' ' + p['unit'] if p.get('unit') else ''}" for p in negative)
+            neg = (f"the compliance of {' and '.join(who)} is negative by more than {SIGNIFICANT_STD:g} std "
+                   f"({said}), and a spring never pushes back the wrong way")
+            f["bound"] = neg + ("; " + f["bound"] if f.get("bound") else "")
+            f["physical"] = False
+        if f.get("physical") is not False:
+            continue
+        f["follows"], f["kind"] = f["kind"], "correction"
+        gain = ""
+        if f.get("holdout_rms_before_mm") is not None and f.get("holdout_rms_after_mm") is not None:
+            gain = (f"held out it takes the error from {f['holdout_rms_before_mm']:.3f} to "
+                    f"{f['holdout_rms_after_mm']:.3f} mm ({f.get('gain_pct', 0.0):.0f} % better), but ")
+        f["evidence"] = (f"This is a correction that follows {follows_what(f)}, not a physical cause: {gain}"
+                         f"{f.get('bound', 'its size is not physical')}. Fitted as "
+                         f"{f['follows'].replace('_', ' ')}: " + f["evidence"])
 
 
 def _outlier_note(meas: Measurements, first: np.ndarray, final: np.ndarray) -> str:
@@ -1445,6 +1521,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     _with_switch_doubt(current, meas)
     _with_mass_doubt(current, fit, model)
     _judge_sizes(current, findings, meas)
+    present_findings(current, findings)
     current.unmodelled_mm = _unmodelled_mm(current, floor, structure_left)
     if loss == "huber" and first is not None:
         notes.insert(0, _outlier_note(meas, first.solution.outliers, current.solution.outliers))
@@ -1724,7 +1801,11 @@ def explain(d: Diagnosis, model: RobotModel) -> str:
     for f in d.findings:
         who = f" on {', '.join(f['joints'])}" if f["joints"] else ""
         odd = ", a size no real joint has: a correction, not the cause" if f.get("physical") is False else ""
-        parts.append(f"{f['kind'].replace('_', ' ')}{who} (held-out {f['holdout_rms_before_mm']:.3f} -> "
+        name = f"{f['kind'].replace('_', ' ')}{who}"
+        if f["kind"] == "correction":
+            odd = f"; not a physical cause: {f.get('bound', 'its size is not physical')}"
+            name = f"a correction that follows {follows_what(f)}"
+        parts.append(f"{name} (held-out {f['holdout_rms_before_mm']:.3f} -> "
                      f"{f['holdout_rms_after_mm']:.3f} mm, {f['gain_pct']:.0f} % better{odd})")
     final = d.calibration.metrics()["holdout_rms_mm"]
     left = ""

@@ -176,8 +176,10 @@ def cmd_export_urdf(args) -> int:
     if isinstance(doc, dict) and isinstance(doc.get("calibrated_model"), dict):  # a calibration answer
         findings = (doc.get("diagnosis") or {}).get("findings") or []
         model = {**doc["calibrated_model"], "calibration": {"effects": [
-            {"kind": f.get("kind"), "joints": f.get("joints") or []} for f in findings
-            if f.get("kind") != "unexplained" and f.get("kind") in (doc.get("model") or [])]}}
+            {"kind": f.get("follows") if f.get("kind") == "correction" else f.get("kind"),
+             "joints": f.get("joints") or []} for f in findings
+            if (f.get("follows") if f.get("kind") == "correction" else f.get("kind")) in (doc.get("model") or [])
+            and f.get("kind") != "unexplained"]}}
     else:
         model = doc
     if args.form != "rows" and model is doc and isinstance(doc, dict) and isinstance(doc.get("urdf"), dict) \

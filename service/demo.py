@@ -30,6 +30,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from calib_core.diagnose import follows_what
 from calib_core.identify import evaluate, identify
 from calib_core.io import MeasurementError, Measurements, parse_measurements, write_measurements
 from calib_core.model import LENGTH_TO_MM, ModelError, RobotModel, parse_model
@@ -621,7 +622,12 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
             f"({d.get('noise_floor_basis') or 'instrument and repeatability'}): {verdict}.", 3)
     for k, f in enumerate(findings, 1):
         odd = ", not a physical size" if f.get("physical") is False else ""
-        say(f"Cause {k} [{f['kind']}{odd}]: {cause_name(f)}. Held-out {fmm(f['holdout_rms_before_mm'])} -> "
+        name = cause_name(f)
+        if f["kind"] == "correction":
+            odd = f", follows {f.get('follows')}"
+            name = (f"a correction that follows {follows_what(f)} (not a physical cause: "
+                    f"{f.get('bound') or 'its size is not physical'})")
+        say(f"Cause {k} [{f['kind']}{odd}]: {name}. Held-out {fmm(f['holdout_rms_before_mm'])} -> "
             f"{fmm(f['holdout_rms_after_mm'])}, {f['gain_pct']:.1f} % better.", 3)
         say(f"Evidence: {f['evidence']}", 5)
     if not findings:

@@ -145,7 +145,10 @@ def plot_list(answer: dict) -> list[dict]:
 
 
 def finding_title(f: dict) -> str:
-    kind = str(f.get("kind", "")).replace("_", " ")
+    """`joint compliance on R6`; a correction (kind "correction") by the form it follows, which the prose around it
+    calls a correction."""
+    kind = str(f.get("follows") if f.get("kind") == "correction" and f.get("follows") else f.get("kind", ""))
+    kind = kind.replace("_", " ")
     joints = ", ".join(f.get("joints") or [])
     harmonic = f" (harmonic {f['harmonic']})" if f.get("harmonic") is not None else ""
     return f"{kind} on {joints}{harmonic}" if joints else f"{kind}{harmonic}"

@@ -13,6 +13,8 @@ from datetime import datetime, timezone
 from html import escape
 from typing import Callable
 
+from calib_core.diagnose import follows_what
+
 from .figures import (FIT_NOTE, HOLDOUT_NOTE, accuracy, counted_word, finding_title, joint_size, mm, model_label,
                       num, observability, pct, plot_list, show_unit, shown, sig, std_str)
 
@@ -316,7 +318,10 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
                 j = _joints(f)
                 what = PLAIN.get(kind, finding_title(f))
                 title = _sentence(what.format(j=j))
-                if f.get("physical") is False:
+                if kind == "correction":
+                    title = (f"A correction that follows {follows_what(f)} (not a physical cause: "
+                             f"{f.get('bound') or 'its size is not physical'}).")
+                elif f.get("physical") is False:
                     title = (f"A correction following {j} (fitted as {kind.replace('_', ' ')}; its size is not "
                              f"physical, so it is not named as that cause).")
                 sizes, weak, moved = _cause_sizes(f, table)
