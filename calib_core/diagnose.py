@@ -159,8 +159,14 @@ class Diagnosis:
             return (f"search stopped at its time budget: {n or 'no'} cause(s) confirmed so far, not a complete "
                     f"answer" + ("; structure left" if len(self.findings) > n else ""))
         if self.findings:
-            left = any(f["kind"] == "unexplained" for f in self.findings)
-            return "causes found" + ("; structure left that no named cause explains" if left else "")
+            kinds = [f["kind"] for f in self.findings]
+            named = sum(k not in ("unexplained", "correction") for k in kinds)
+            parts = (["causes found"] if named else [])
+            if "correction" in kinds:  # a form whose size no real joint has: it corrects, it does not name
+                parts.append(f"{kinds.count('correction')} correction(s) of no physical size")
+            if "unexplained" in kinds:
+                parts.append("structure left that no named cause explains")
+            return "; ".join(parts) if named else "no physical cause named: " + "; ".join(parts)
         gaps = self.gaps()
         if gaps:
             return f"none found, but this pose set cannot identify {len(gaps)} parameter(s): valid only near it"

@@ -126,3 +126,21 @@ def test_the_explanation_says_correction():
     text = explain(d, SPRAY)
     assert "a correction that follows the load on J3 (held-out 1.000 -> 0.500 mm" in text, text
     assert "not a physical cause: the compliance of J3 is negative" in text, text
+
+
+def test_the_verdict_names_causes_only_where_a_physical_one_was_found():
+    """"causes found" only with a physically named finding: corrections and unexplained structure are said as what
+    they are (a finding list of one `unexplained` read "causes found; structure left ...")."""
+    from types import SimpleNamespace
+
+    from calib_core.diagnose import Diagnosis
+
+    def verdict(*kinds):
+        d = SimpleNamespace(untested=None, findings=[{"kind": k} for k in kinds])
+        return Diagnosis.verdict(d)
+
+    assert verdict("joint_compliance") == "causes found"
+    assert verdict("backlash", "unexplained") == "causes found; structure left that no named cause explains"
+    assert verdict("unexplained") == "no physical cause named: structure left that no named cause explains"
+    assert verdict("correction", "unexplained").startswith("no physical cause named: 1 correction(s)")
+    assert verdict("joint_compliance", "correction") == "causes found; 1 correction(s) of no physical size"
