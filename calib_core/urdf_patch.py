@@ -63,7 +63,8 @@ from typing import Any
 import numpy as np
 
 from .model import ANGLE_TO_RAD, GEOMETRIC, LENGTH_TO_MM, ModelError, RobotModel, parse_model
-from .urdf import EXTENSION, MOVABLE, UrdfError, _parse_joints, _read, matrix_rpy, origin_matrix
+from .urdf import EXTENSION, matrix_rpy, origin_matrix
+from .urdf_xml import MOVABLE, UrdfError, _parse_joints, _read
 
 DEFAULT_BASE_LINK = "measurement_frame"
 """The new root link's name for ``base_joint=True``."""

@@ -166,7 +166,7 @@ def cmd_export_urdf(args) -> int:
     """A model JSON, `GET /calibrations/{id}/model` or a calibration answer (`GET /calibrations/{id}`) as URDF."""
     import json
 
-    from calib_core.urdf import to_urdf
+    from calib_core.urdf_write import to_urdf
 
     try:
         doc = json.loads(Path(args.file).read_text())

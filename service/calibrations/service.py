@@ -90,7 +90,7 @@ def plot_png(c: Calibration, name: str, a: dict | None = None) -> bytes:
 def calibrated_model(s: Session, c: Calibration) -> dict:
     """The calibrated model as contract JSON (identified geometry and tool point, model units), with the stored
     model's URDF extension and a `calibration` object (effects the rows cannot hold, base pose)."""
-    from calib_core.urdf import calibrated_model_dict
+    from calib_core.urdf_write import calibrated_model_dict
 
     r = s.get(Robot, c.robot_id)
     doc = calibrated_model_dict(model_of(r), c.robot_state, r.model_json)
@@ -118,7 +118,7 @@ def calibrated_urdf(s: Session, c: Calibration, base_joint: str | bool | None = 
         raise ProblemError(422, "base_joint needs the original URDF (a robot imported from a URDF, form=original); "
                            "the URDF written from the model rows lists the base pose in a comment", kind="validation",
                            errors=[{"field": "base_joint", "value": base_joint, "message": "no URDF source"}])
-    from calib_core.urdf import to_urdf
+    from calib_core.urdf_write import to_urdf
 
     return to_urdf(calibrated_model(s, c))
 

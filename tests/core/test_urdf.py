@@ -14,7 +14,8 @@ import pytest
 from calib_core import kinematics as K
 from calib_core.frames import mdh_transform
 from calib_core.model import LENGTH_TO_MM, parse_model
-from calib_core.urdf import CONTINUOUS_LIMIT_RAD, UrdfError, calibrated_model_dict, parse_urdf, to_urdf
+from calib_core.urdf import CONTINUOUS_LIMIT_RAD, UrdfError, parse_urdf
+from calib_core.urdf_write import calibrated_model_dict, to_urdf
 
 HILTI = Path(__file__).resolve().parents[3] / "shared" / "datasets" / "hilti_trailblazer" / "trailblazer.urdf"
 
@@ -389,7 +390,7 @@ def test_refuses_entities_and_garbage():
 
 
 def test_calibrated_export_lists_effects():
-    from calib_core.urdf import calibrated_model_dict
+    from calib_core.urdf_write import calibrated_model_dict
 
     m = parse_urdf(UR_LIKE, target="tool0")
     model = parse_model(m)
