@@ -9,7 +9,6 @@ pinocchio or example-robot-data is absent."""
 from __future__ import annotations
 
 import math
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -302,49 +301,6 @@ def erd_text(name: str) -> str:
     return ERD[name].read_text()
 
 
-class PinRef:
-    """pinocchio's model of a URDF (mimic joints as plain joints, set here from the URDF's <mimic> tags)."""
-
-    def __init__(self, pin, text: str):
-        self.pin = pin
-        self.model = pin.buildModelFromXML(text)
-        self.data = self.model.createData()
-        self.mimic = {}
-        names = {j.get("name") for j in ET.fromstring(text).findall("joint")}
-        for j in ET.fromstring(text).findall("joint"):
-            m = j.find("mimic")
-            if m is not None and j.get("type") != "fixed" and m.get("joint") in names:
-                self.mimic[j.get("name")] = (m.get("joint"), float(m.get("multiplier", "1")),
-                                             float(m.get("offset", "0")))
-
-    def value(self, name: str, q: dict[str, float]):
-        if name in q:
-            return q[name]
-        if name in self.mimic:
-            src, k, off = self.mimic[name]
-            v = self.value(src, q)
-            return None if v is None else k * v + off
-        return None
-
-    def point_mm(self, q: dict[str, float], base: str, link: str, smr_m) -> np.ndarray:
-        pin, m = self.pin, self.model
-        x = pin.neutral(m)
-        for jid in range(1, m.njoints):
-            v = self.value(m.names[jid], q)
-            if v is None:
-                continue
-            jm = m.joints[jid]
-            if jm.nq == 2:  # continuous: cos, sin
-                x[jm.idx_q], x[jm.idx_q + 1] = math.cos(v), math.sin(v)
-            else:
-                assert jm.nq == 1
-                x[jm.idx_q] = v
-        pin.framesForwardKinematics(m, self.data, x)
-        fb, fl = m.getFrameId(base, pin.FrameType.BODY), m.getFrameId(link, pin.FrameType.BODY)
-        assert fb < m.nframes and fl < m.nframes, (base, link)
-        return (self.data.oMf[fb].inverse() * self.data.oMf[fl]).act(np.asarray(smr_m, float)) * 1000.0
-
-
 # (file, base link or None, target links, a joint the note names, what the note says): each refused before
 REFUSED = [
     ("talos_left_arm.urdf", None, "gripper_left_fingertip_1_link", "gripper_left_fingertip_1_joint",
@@ -363,9 +319,10 @@ REFUSED = [
 @pytest.mark.parametrize("file, base, targets, joint, words", REFUSED, ids=[r[0] + ":" + r[3] for r in REFUSED])
 @pytest.mark.parametrize("form", ["auto", "xyz"])
 def test_refused_urdfs_import_like_pinocchio(file, base, targets, joint, words, form):
-    pin = pytest.importorskip("pinocchio")
+    pytest.importorskip("pinocchio")
+    from .test_pinocchio_reference import PinRobot
+
     text = erd_text(file)
-    pin.buildModelFromXML(text)  # pinocchio loads it
     tl = targets.split(",") if targets else None
     smr = None if tl is None else ";".join(["0.03,0.02,0.05"] * len(tl))
     doc = parse_urdf(text, base, targets, form=form, smr_m=smr, length_unit="mm")
@@ -373,14 +330,14 @@ def test_refused_urdfs_import_like_pinocchio(file, base, targets, joint, words, 
     assert len(notes) == 1 and words in notes[0], doc["urdf"]["notes"]
     assert doc["urdf"]["source"] == text
     base_link, tl = doc["urdf"]["base_link"], doc["urdf"].get("target_links") or [doc["urdf"]["target_link"]]
-    ref = PinRef(pin, text)
+    ref = PinRobot(text)  # pinocchio loads it
     qs = random_actuated(doc, 30, seed=7)
     pts = model_points_mm(doc, qs)
     offset = SMR_M if smr else np.zeros(3)
     for i, qm in enumerate(qs):
         qu = urdf_values(doc, qm)
         for t in tl:
-            want = ref.point_mm(qu, base_link, t, offset)
+            want = ref.link_points([qu], base_link, [t], np.asarray(offset, float) * 1000.0)[0, 0]
             assert np.abs(pts[t][i] - want).max() < FK_TOL_MM, (t, pts[t][i] - want)
             assert np.abs(own_products_mm(text, base_link, t, qu, offset) - want).max() < FK_TOL_MM
 
@@ -389,19 +346,21 @@ def test_refused_urdfs_import_like_pinocchio(file, base, targets, joint, words, 
                                                 ("panda.urdf", "panda_hand_tcp", "mdh"),
                                                 ("baxter.urdf", "left_gripper,right_gripper", "auto")])
 def test_smr_offset_matches_pinocchio(file, target, form):
-    pin = pytest.importorskip("pinocchio")
+    pytest.importorskip("pinocchio")
+    from .test_pinocchio_reference import PinRobot
+
     text = erd_text(file)
     base = "base" if file == "baxter.urdf" else None
     tl = target.split(",")
     smr = [(0.03, 0.02, 0.05), (-0.04, 0.01, 0.12)][:len(tl)]
     doc = parse_urdf(text, base, target, form=form, smr_m=smr, angle_unit="deg")
-    ref = PinRef(pin, text)
+    ref = PinRobot(text)
     qs = random_actuated(doc, 40, seed=3)
     pts = model_points_mm(doc, qs)
     for i, qm in enumerate(qs):
         qu = urdf_values(doc, qm)
         for t, off in zip(tl, smr):
-            want = ref.point_mm(qu, doc["urdf"]["base_link"], t, off)
+            want = ref.link_points([qu], doc["urdf"]["base_link"], [t], np.asarray(off, float) * 1000.0)[0, 0]
             assert np.abs(pts[t][i] - want).max() < FK_TOL_MM, (t, pts[t][i] - want)
 
 
