@@ -264,7 +264,9 @@ def test_iiwa_orientation_and_torque_columns():
     assert header[-11:] == ["qw", "qx", "qy", "qz", *(f"tau_{j}" for j in D.IIWA_JOINTS)]
     assert meas.orientation.shape == (792, 4) and np.all(meas.orientation[:, 0] >= 0)
     # the quaternion is the tracker's 4x4 rotation (scipy, independent), the point its translation
-    raw = D._read_columns(D.SHARED_DATASETS / D.IIWA_DIR / D.IIWA_RUNS[0.0])
+    from calib_core.datasets._common import _read_columns
+
+    raw = _read_columns(D.SHARED_DATASETS / D.IIWA_DIR / D.IIWA_RUNS[0.0])
     R = np.stack([np.column_stack([raw[f"m_{r}{c}"] for c in range(3)]) for r in range(3)], axis=1)
     q = meas.orientation[:198]
     assert np.abs(Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix() - R).max() < 1e-9
