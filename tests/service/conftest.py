@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.demo import stop_process_group
+from service.demo_client import stop_process_group
 
 from calib_core import Twin, parse_model, write_measurements
 from calib_core.robots import spray7
