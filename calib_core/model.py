@@ -423,6 +423,8 @@ and the two objects the project writes into the documents it answers (`urdf`, th
 JOINT_KEYS = ("name", "type", *GEOMETRIC, "xyz", "rpy", "axis", "limits", "mass", "com", "parent", "coupled", "meta")
 TARGET_KEYS = ("name", "parent", "xyz", "meta")
 UNIT_KEYS = ("length", "angle")
+MAX_KEY_ERRORS = 50
+"""Unknown keys listed at most (as NaN, NUL and depth problems are)."""
 
 
 def _unknown_keys(errors: list, where: str, obj, allowed: tuple[str, ...]) -> None:
@@ -433,9 +435,12 @@ def _unknown_keys(errors: list, where: str, obj, allowed: tuple[str, ...]) -> No
     for k in obj:
         if k in allowed:
             continue
-        near = difflib.get_close_matches(str(k), allowed, n=1, cutoff=0.6)
+        if len(errors) >= MAX_KEY_ERRORS:  # a document of a million unknown keys gets a bounded answer
+            return
+        k = str(k)[:80]  # echoed, not the whole of a 5 MB key
+        near = difflib.get_close_matches(k, allowed, n=1, cutoff=0.6)
         hint = f"did you mean '{near[0]}'? " if near else ""
-        errors.append({"field": f"{where}.{k}" if where else str(k), "value": k,
+        errors.append({"field": f"{where}.{k}" if where else k, "value": k,
                        "message": f"unknown key; {hint}valid here: {', '.join(allowed)} (free-form data of your "
                                   "own goes under 'meta')"})
 

@@ -225,3 +225,13 @@ def test_the_users_own_data_goes_under_meta():
     assert parse_model(doc).n_joints == len(doc["joints"])
     doc["colour"] = "red"
     assert [e["field"] for e in _errors(doc)] == ["colour"]
+
+
+def test_unknown_keys_get_a_bounded_answer():
+    """An attacker's document of 10,000 unknown keys, one of them 5,000 characters long: at most 50 problems, each
+    key echoed to 80 characters."""
+    doc = spray7()
+    doc["k" * 5000] = 1
+    doc.update({f"junk{i}": i for i in range(10_000)})
+    errs = _errors(doc)
+    assert len(errs) <= 50 and max(len(e["field"]) for e in errs) <= 80, (len(errs), errs[0]["field"][:90])
