@@ -1105,8 +1105,17 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
                              f"{' ' + p['unit'] if p.get('unit') else ''}" for p in negative)
             neg = (f"the compliance of {' and '.join(who)} is negative by more than {SIGNIFICANT_STD:g} std "
                    f"({said}), and a spring never pushes back the wrong way")
-            f["bound"] = neg + ("; " + f["bound"] if f.get("bound") else "")
-            f["physical"] = False
+            springs = [j for j in joints if j not in who and any(
+                p["name"].endswith(".compliance") and _beyond(p) > SIGNIFICANT_STD for p in mine[j])]
+            if springs:  # the cause stays named for the joints that give as springs do; the rest is a correction
+                f["significant_joints"] = springs
+                f["negative_joints"] = who
+                f["evidence"] += (f"; {neg}: that share is a correction within this cause, not "
+                                  f"{'their' if len(who) > 1 else 'its'} spring, and the cause is named for "
+                                  f"{', '.join(springs)}")
+            else:
+                f["bound"] = neg + ("; " + f["bound"] if f.get("bound") else "")
+                f["physical"] = False
         if f.get("physical") is not False:
             continue
         f["follows"], f["kind"] = f["kind"], "correction"
