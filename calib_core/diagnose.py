@@ -81,9 +81,12 @@ def noise_floor_mm(meas: Measurements, sigma: np.ndarray, repeatability_mm: floa
         repeatability_mm, how = (rep, "repeats") if rep is not None else (DEFAULT_REPEATABILITY_MM, "assumed")
     floor = float(np.sqrt(3 * np.mean(sigma**2) + 3 * repeatability_mm**2))
     said = {"given": "given", "repeats": "from repeated poses", "assumed": "assumed"}[how]
+    rep = (f"robot repeatability {repeatability_mm * 1000:.0f} um per axis ({said})"
+           if how != "repeats" or repeatability_mm >= 0.0005 else
+           "robot repeatability below what the instrument resolves (the repeated poses spread no more than its "
+           "noise)")
     return floor, (f"instrument sigma {np.sqrt(np.mean(sigma**2)) * 1000:.0f} um per axis (from "
-                   f"{meas.noise_source()}), robot repeatability {repeatability_mm * 1000:.0f} um per axis "
-                   f"({said})"), how
+                   f"{meas.noise_source()}), {rep}"), how
 
 
 def _repeatability_from_repeats(meas: Measurements, sigma: np.ndarray) -> float | None:
@@ -584,16 +587,10 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     e = c.effect
     names = set(e.parameter_names(model))
     params = [p for p in after.parameters() if "effect" in p and p["name"] in names]
-    shown = ", ".join(f"{p['name']} = {p['value']:.4g} +/- "
-                      f"{'(undetermined)' if p['std'] is None else format(p['std'], '.2g')} {p['unit']}"
-                      for p in params[:4])
     when = _when(e, meas) if meas is not None else ""
     p_gain, _ = holdout_gain(before, after)
     mb, ma = model_error_mm(before, floor), model_error_mm(after, floor)
-    evidence = (f"{e.explain(model)}{' ' + when if when else ''}: it explains {100 * c.explained:.0f} % of the "
-                f"remaining residual (F = {c.F:.1f}, {_p(c.p_value)}); on held-out poses the error drops "
-                f"{hb:.3f} -> {ha:.3f} mm (paired {_p(p_gain)}) and the model error beyond the noise floor "
-                f"({floor:.3f} mm) {mb:.3f} -> {ma:.3f} mm; {shown}")
+    evidence = f"{e.explain(model)}{' ' + when if when else ''}: screened at F = {c.F:.1f} ({_p(c.p_value)})"
     out = {"kind": e.kind, "joints": _names(e, model),
            "holdout_rms_before_mm": hb, "holdout_rms_after_mm": ha, "gain_pct": 100.0 * (hb - ha) / hb,
            "model_error_before_mm": mb, "model_error_after_mm": ma, "holdout_p_value": p_gain,
@@ -1034,17 +1031,46 @@ def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> 
                     if big > (PLAUSIBLE_TRAVEL_MM if model.prismatic[j] else PLAUSIBLE_TURN_RAD):
                         sizes.append(f"{model.joint_names[j]} by up to "
                                      + (f"{big:.3g} mm" if model.prismatic[j] else f"{np.degrees(big):.3g} deg"))
+        plays = _plays_beyond_motion(cal, f, meas) if f.get("kind") == "backlash" else ""
+        if plays and not sizes:
+            f["physical"] = False
+            f["bound"] = plays
+            f["evidence"] += (f"; its size is not physical: {plays}. The data determine what it predicts (held-out "
+                              f"poses confirm it), not this play: read it as a correction, not as the joint's")
         if sizes:
             f["physical"] = False
             limits = sorted({f"{PLAUSIBLE_TRAVEL_MM:g} mm" if "mm" in x else
                              f"{np.degrees(PLAUSIBLE_TURN_RAD):.3g} deg" for x in sizes})
             f["bound"] = (f"it would move {', '.join(sizes)} at a calibration pose, beyond the "
                           f"{' or '.join(limits)} a real play, spring or bearing moves a joint")
+            if plays:
+                f["bound"] += "; " + plays
             f["evidence"] += (f"; its size is not physical: it would move {', '.join(sizes)} at a calibration pose, "
                               f"where a real play, spring or bearing turns a joint by a fraction of a degree. The "
                               f"data determine what it predicts (held-out poses confirm it), not these values: it "
                               f"stands in for structure with no name here, or trades one joint's share against "
                               f"another's, so read it as a correction, not as the joint's")
+
+
+def _plays_beyond_motion(cal: Calibration, f: dict, meas: Measurements) -> str:
+    """A gear play shows as the joint sitting on one flank or the other; one wider than the joint's own travel over
+    the calibration poses cannot be told from the data (the iiwa: a 0.41 deg play named on A6, which moves less than
+    0.12 deg). Says which plays break that bound, with both sizes; "" when none does."""
+    model, out = cal.model, []
+    table = {p["name"]: p for p in cal.parameters()}
+    for name in f.get("joints") or []:
+        j = model.joint_names.index(name)
+        p = table.get(f"{name}.backlash")
+        if p is None or p.get("value") is None:
+            continue
+        play, travel = abs(float(p["value"])), float(np.ptp(meas.joints[:, j]))
+        if play > travel:
+            out.append(f"a play of {play:.3g} mm on {name}, which moves {travel:.3g} mm" if model.prismatic[j] else
+                       f"a play of {np.degrees(play):.3g} deg on {name}, which turns {np.degrees(travel):.3g} deg")
+    if not out:
+        return ""
+    return (f"{'; '.join(out)} over the calibration poses: no play wider than the joint's own motion can be "
+            f"revealed by it")
 
 
 SIGNIFICANT_STD = 2.0
@@ -1064,6 +1090,15 @@ def follows_what(f: dict) -> str:
     return FOLLOWS.get(kind, kind.replace("_", " ") + (" on {j}" if j else "")).format(j=j or "the robot")
 
 
+def named_joints(f: dict) -> tuple[list[str], str]:
+    """The joints a finding is named for, and a remark on the others: its `significant_joints` where some of its
+    joints carry no share beyond SIGNIFICANT_STD std (compliance on two joints is not named as that of five)."""
+    joints, sig = list(f.get("joints") or []), f.get("significant_joints")
+    if not sig or len(sig) == len(joints):
+        return joints, ""
+    return list(sig), f"{len(sig)} of {len(joints)} joints fitted carry a share"
+
+
 def _beyond(p: dict, k: float = SIGNIFICANT_STD) -> float:
     """value / std of a parameter (0 where its std is undetermined)."""
     std = p.get("std")
@@ -1073,7 +1108,8 @@ def _beyond(p: dict, k: float = SIGNIFICANT_STD) -> float:
 
 
 def present_findings(cal: Calibration, findings: list[dict]) -> None:
-    """How the answer presents each finding, from the final model's parameter table (what is fitted is not touched).
+    """How the answer presents each finding, from the final model's parameter table (what is fitted is not touched):
+    its parameters and the values its evidence quotes are the table's (a later refit moves them).
     A finding on several joints lists in `significant_joints` the joints whose own parameters are beyond
     SIGNIFICANT_STD std of zero, and its evidence names the others. A finding that breaks its physical bound (a size
     no real joint has, `_judge_sizes`; a joint compliance below -SIGNIFICANT_STD std: a spring never pushes back the
@@ -1085,7 +1121,10 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
     for f in findings:
         if f.get("kind") in ("unexplained", "correction") or not f.get("parameters"):
             continue
-        params = [{**p, **table.get(p["name"], {})} for p in f["parameters"]]
+        params = f["parameters"] = [{**p, **table.get(p["name"], {})} for p in f["parameters"]]
+        f["evidence"] += "; in the final model " + ", ".join(
+            f"{p['name']} = {p['value']:.4g} +/- {'(undetermined)' if p['std'] is None else format(p['std'], '.2g')}"
+            f"{' ' + p['unit'] if p.get('unit') not in (None, '', '1') else ''}" for p in params[:4])
         joints = list(f.get("joints") or [])
         mine = {j: [p for p in params if p["name"].startswith(j + ".")] for j in joints}
         if len(joints) > 1:
@@ -1126,6 +1165,41 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
         f["evidence"] = (f"This is a correction that follows {follows_what(f)}, not a physical cause: {gain}"
                          f"{f.get('bound', 'its size is not physical')}. Fitted as "
                          f"{f['follows'].replace('_', ' ')}: " + f["evidence"])
+
+
+def _chain(findings: list[dict], geo: Calibration, named: Calibration, fit: _Fitter, x_ref: np.ndarray,
+           floor: float, model: RobotModel | None) -> None:
+    """Per-cause figures that chain: finding k is judged as added to the findings before it, its held-out error
+    before being the one its predecessor ends at (the geometric model's for the first, the named causes' model for
+    the last, where `unexplained` starts). The search judged each cause against the model of its moment, and a
+    revisit against the final model without it, so its figures did not chain (the Motoman: cause 1 ended at 1.438
+    mm, cause 2 started at 1.527). Costs one refit per named cause but the last; with `model` None (the time budget
+    is spent) the search's own figures stay. Appends the held-out sentence to each finding's evidence."""
+    named_f = [f for f in findings if f.get("kind") != "unexplained"]
+    steps = None
+    if model is not None and named_f:
+        effects, used, steps = list(named.effects), set(), [geo]
+        try:
+            for f in named_f[:-1]:
+                names = {p["name"] for p in f.get("parameters", [])}
+                used |= {i for i, e in enumerate(effects) if names & set(e.parameter_names(model))}
+                steps.append(fit(tuple(effects[i] for i in sorted(used)), x_ref))
+        except (ValueError, np.linalg.LinAlgError):
+            steps = None
+        else:
+            steps.append(named)
+    for k, f in enumerate(named_f):
+        if steps is not None:
+            before, after = steps[k], steps[k + 1]
+            hb, ha = before.metrics()["holdout_rms_mm"], after.metrics()["holdout_rms_mm"]
+            f.update(holdout_rms_before_mm=hb, holdout_rms_after_mm=ha, gain_pct=100.0 * (hb - ha) / hb,
+                     model_error_before_mm=model_error_mm(before, floor),
+                     model_error_after_mm=model_error_mm(after, floor), holdout_p_value=holdout_gain(before, after)[0])
+        added = "added to the geometric model" if k == 0 else "added to the causes above"
+        f["evidence"] += (f"; {added}, it takes the held-out error from {f['holdout_rms_before_mm']:.3f} to "
+                          f"{f['holdout_rms_after_mm']:.3f} mm (paired {_p(f['holdout_p_value'])}) and the model "
+                          f"error beyond the noise floor ({floor:.3f} mm) from {f['model_error_before_mm']:.3f} to "
+                          f"{f['model_error_after_mm']:.3f} mm")
 
 
 def _outlier_note(meas: Measurements, first: np.ndarray, final: np.ndarray) -> str:
@@ -1502,6 +1576,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     rejected = [r for r in search.rejected if (r["kind"], tuple(r["joints"])) not in found]
     current, chosen, findings, x_ref = search.current, search.chosen, search.findings, search.x_ref
     structure_left = _excess(current, floor) < alpha
+    named = current  # the model of the named causes (what `unexplained` starts from)
     if unexplained and structure_left:
         report(0.85, "looking at what the residual left follows")
         follows = _follows(current, meas, sigma, x_ref, alpha, load_pool)
@@ -1533,6 +1608,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             note = f"estimated from the structure-free held-out residual (assumed floor was {floor:.3f} mm)"
             floor, basis = new_floor, "residual"
         structure_left = _excess(current, floor) < alpha  # current or floor has changed
+    _chain(findings, geo, named, fit, search.x_ref, floor,
+           None if deadline is not None and time.monotonic() > deadline else model)
     _with_switch_doubt(current, meas)
     _with_mass_doubt(current, fit, model)
     _judge_sizes(current, findings, meas)
@@ -1797,7 +1874,8 @@ def _unexplained_finding(model, before, trial, floor, follows, basis, after: Cal
 def explain(d: Diagnosis, model: RobotModel) -> str:
     """One paragraph a process engineer can read; it says what the JSON says."""
     g = d.geometric.metrics()
-    out = f" (the {len(g['outliers'])} outliers left out)" if g["outliers"] else ""
+    n_out = len(g["outliers"])
+    out = f" (the {n_out} outlier{'s' if n_out > 1 else ''} left out)" if n_out else ""
     head = (f"After the geometric calibration the robot's held-out error is {g['holdout_rms_mm']:.3f} mm RMS{out} "
             f"against a noise floor of {d.noise_floor_mm:.3f} mm (what a perfect model would leave: {d.noise_note}).")
     gaps = d.gaps()
@@ -1814,7 +1892,8 @@ def explain(d: Diagnosis, model: RobotModel) -> str:
         return head + f" No cause was found: the residual is at the noise floor{complete}." + caveat + tail
     parts = []
     for f in d.findings:
-        who = f" on {', '.join(f['joints'])}" if f["joints"] else ""
+        joints, others = named_joints(f)
+        who = (f" on {', '.join(joints)}" if joints else "") + (f" ({others})" if others else "")
         odd = ", a size no real joint has: a correction, not the cause" if f.get("physical") is False else ""
         name = f"{f['kind'].replace('_', ' ')}{who}"
         if f["kind"] == "correction":

@@ -10,6 +10,8 @@ Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
 """A JSON number, finite; strict: the string "1" is not a number."""
 MAX_POSES = MAX_PREDICT_ROWS  # enforced before parsing by limits.BatchLimitMiddleware (413); here for the OpenAPI
 MAX_ROW = 256
+MAX_COMPENSATE_ITER = 200
+"""Gauss-Newton iterations a compensation may ask per target (30 by default): bounds the request's work."""
 """At most this many values in one row of joints (a robot has a handful of joints)."""
 Row = Annotated[list[Finite], Field(max_length=MAX_ROW)]
 PerPose = Annotated[list[Finite], Field(max_length=MAX_POSES)]
@@ -116,6 +118,8 @@ class CompensateIn(BaseModel):
                                                   "(default the first setup of the calibration)")
     tau: dict[Label, TauValues] | None = Field(None, max_length=MAX_ROW, description=TAU_DESCRIPTION + "; one "
                                                "per target or program row", examples=[{"tau_J2": [412.5]}])
+    max_iter: int = Field(30, ge=1, le=MAX_COMPENSATE_ITER, description="Gauss-Newton iterations per target before "
+                          "it is reported as not reached (a reason 'still converging' asks for more)")
 
 
 class CompensateOut(BaseModel):

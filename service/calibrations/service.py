@@ -358,7 +358,7 @@ def compensate(s: Session, c: Calibration, body) -> dict:
         result = nominal_to_calibrated(robot, None, q, locked=locked, columns=columns)
     else:
         targets = np.asarray(body.targets, float).reshape(-1, 3) * LENGTH_TO_MM[model.length_unit]
-        result = solve_compensation(robot, targets, q, locked=locked, columns=columns)
+        result = solve_compensation(robot, targets, q, locked=locked, columns=columns, max_iter=body.max_iter)
     out = result.to_dict(model)
     out["unit"] = {"length": model.length_unit, "angle": model.angle_unit}
     return out

@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from calib_core.diagnose import named_joints
+
 HOLDOUT_NOTE = ("held-out: every pose predicted by the model fitted without it (5-fold cross-validation), "
                 "the poses the model names as outliers left out. "
                 "ISO 9283 positional accuracy AP = distance between the command position and the barycentre "
@@ -145,13 +147,15 @@ def plot_list(answer: dict) -> list[dict]:
 
 
 def finding_title(f: dict) -> str:
-    """`joint compliance on R6`; a correction (kind "correction") by the form it follows, which the prose around it
+    """`joint compliance on R6`, named for its significant joints (`named_joints`); a correction (kind "correction") by the form it follows, which the prose around it
     calls a correction."""
     kind = str(f.get("follows") if f.get("kind") == "correction" and f.get("follows") else f.get("kind", ""))
     kind = kind.replace("_", " ")
-    joints = ", ".join(f.get("joints") or [])
+    named, others = named_joints(f)
+    joints = ", ".join(named)
     harmonic = f" (harmonic {f['harmonic']})" if f.get("harmonic") is not None else ""
-    return f"{kind} on {joints}{harmonic}" if joints else f"{kind}{harmonic}"
+    others = f" ({others})" if others else ""
+    return f"{kind} on {joints}{harmonic}{others}" if joints else f"{kind}{harmonic}"
 
 
 LEAST_DETERMINED = 3

@@ -13,9 +13,9 @@ from datetime import datetime, timezone
 from html import escape
 from typing import Callable
 
-from calib_core.diagnose import follows_what
+from calib_core.diagnose import follows_what, named_joints
 
-from .figures import (FIT_NOTE, HOLDOUT_NOTE, accuracy, counted_word, finding_title, joint_size, mm, model_label,
+from .figures import (accuracy, counted_word, finding_title, joint_size, mm, model_label,
                       num, observability, pct, plot_list, show_unit, shown, sig, std_str)
 
 CSS = """
@@ -146,8 +146,8 @@ def _img(src: str, alt: str, caption: str) -> str:
 
 
 PLAIN = {
-    "backlash": "{j} shifts by its gear play when its load changes sign",
-    "joint_compliance": "{j} gives way under its load like a spring",
+    "backlash": "{j} shift{s} by {its} gear play when {its} load changes sign",
+    "joint_compliance": "{j} give{s} way under {its} load like a spring",
     "link_deflection": "the links bend under the load they carry",
     "cyclic_joint_error": "{j} has an angle error that repeats with its turn (gear eccentricity or a reducer stage)",
     "joint_scale": "{j} moves more or less than commanded, in proportion to its travel (gear ratio or encoder scale)",
@@ -169,7 +169,8 @@ NEXT = {
 
 
 def _joints(f: dict) -> str:
-    js = list(f.get("joints") or [])
+    """The joints a cause is named for, in words (its significant ones, `named_joints`)."""
+    js, _ = named_joints(f)
     return ", ".join(js[:-1]) + " and " + js[-1] if len(js) > 1 else (js[0] if js else "the robot")
 
 
@@ -292,7 +293,9 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
                 (mm(a_.get("rms_mm")), True), (mm(a_.get("max_mm")), True), (mm(fit_all), True)],
                "final" if r.get("final") else ""))
         if not same:
-            w(_row([(f'{_e(r["model"])}, the {_e(h.get("outliers_left_out"))} {word} it names outliers left out',
+            one = h.get("outliers_left_out") == 1
+            w(_row([(f'{_e(r["model"])}, the {_e(h.get("outliers_left_out"))} {word[:-1] if one else word} it names '
+                     f'{"an outlier" if one else "outliers"} left out',
                      False), (_e(h.get("n")), True), (mm(h.get("mean_mm")), True), (mm(h.get("rms_mm")), True),
                     (mm(h.get("max_mm")), True), (mm(r["fit"].get("rms_mm")), True)]))
     w("</tbody></table>")
@@ -307,7 +310,7 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
 
     # --- causes in plain words
     if d:
-        w(f'<h2 id="causes">What the robot gets wrong, in plain words</h2>')
+        w('<h2 id="causes">What the robot gets wrong, in plain words</h2>')
         if not findings:
             why = d.get("verdict") or "nothing the data can show beyond the geometric model"
             w(f"<p>No cause beyond the geometry: {_e(_sentence(why, False))}</p>")
@@ -317,7 +320,11 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
                 kind = str(f.get("kind", ""))
                 j = _joints(f)
                 what = PLAIN.get(kind, finding_title(f))
-                title = _sentence(what.format(j=j))
+                named, others = named_joints(f)
+                one = len(named) <= 1
+                title = _sentence(what.format(j=j, s="s" if one else "", its="its" if one else "their"))
+                if others:
+                    title = title[:-1] + f" ({others})."
                 if kind == "correction":
                     title = (f"A correction that follows {follows_what(f)} (not a physical cause: "
                              f"{f.get('bound') or 'its size is not physical'}).")
@@ -338,7 +345,7 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
                     share = num(top.get("share_pct"))
                     bits.append(f"It follows {_e(top.get('what'))}" +
                                 (f" (explains {share:.0f} % of it)." if share is not None else "."))
-                bits.append(f'Held-out error without it {mm(f.get("holdout_rms_before_mm"))} mm, with it '
+                bits.append(f'Held-out error before it {mm(f.get("holdout_rms_before_mm"))} mm, with it '
                             f'{mm(f.get("holdout_rms_after_mm"))} mm: <span class="gain">{pct(f.get("gain_pct"))} '
                             f'less</span>.')
                 alt = f.get("indistinguishable_from") or []
@@ -353,8 +360,8 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
             w(f'<p class="note">Sizes are the parameter table\'s values: angles at the joint in arc-min (1 deg = 60 '
               f'arc-min), compliances in arc-min per 100 N*m (about 10 kg at 1 m), scale in ppm. "At the tool": the '
               f'RMS displacement of the effect at the tool over the calibration {word}, as the diagnosis measured it '
-              f'when it found the cause. Held-out figures per cause: as the diagnosis scored that step (the {word} '
-              f'each model names outliers left out).</p>')
+              f'when it found the cause. Held-out figures per cause chain: each cause is added to the causes above it, '
+              f'the first to the geometric model (the {word} each model names outliers left out).</p>')
 
     # --- next
     w('<h2 id="next">What to do next</h2><ol class="next">')
@@ -373,7 +380,7 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
         poses = c.get("poses")
         w(f'<li>{_e(c.get("rows"))} rows from {_e(c.get("markers"))} markers'
           + (f': {_e(poses)} poses x {_e(c.get("markers"))} markers' if poses else "")
-          + f'; every figure counts rows (points), not poses.</li>')
+          + '; every figure counts rows (points), not poses.</li>')
     if not c.get("virtual_points") and c.get("markers", 1) == 1:
         w(f"<li>{_e(total)} measured poses, one point each.</li>")
     noise = answer.get("noise_model") or d.get("noise_model")
@@ -398,7 +405,7 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
             w('<ul class="evidence">' + "".join(f"<li>{_e(x)}</li>" for x in clauses) + "</ul>")
             params = f.get("parameters") or []
             if params:
-                w('<table><thead><tr><th>parameter</th><th class="n">value when found</th><th class="n">std</th>'
+                w('<table><thead><tr><th>parameter</th><th class="n">value (final model)</th><th class="n">std</th>'
                   '<th>unit</th></tr></thead><tbody>')
                 for p in params:
                     q = shown(p, angle_unit)
@@ -512,11 +519,19 @@ def _next_steps(answer: dict, findings: list[dict], cid: str) -> list[str]:
         out.append("Run the diagnosis again with a longer time budget: causes not reached were never tested.")
     alts = [f for f in findings if f.get("indistinguishable_from")]
     for f in alts:
-        alt = [finding_title(a) for a in f["indistinguishable_from"]]
-        out.append(f"Measure poses that tell {_e(finding_title(f))} apart from "
-                   f"{_e(', '.join(alt)) if len(alt) <= 2 else f'{len(alt)} look-alike causes (listed above)'} "
-                   f"(<code>POST /robots/{{id}}/plan</code> with <code>purpose: diagnosis</code>), then calibrate "
-                   f"again: the data fit them equally well.")
+        # the plan service is suggested only for pairs it can rebuild (`plannable`, as the demo asks it)
+        for plannable in (True, False):
+            alt = [finding_title(a) for a in f["indistinguishable_from"] if (a.get("plannable") is not False)
+                   == plannable]
+            if not alt:
+                continue
+            how = ("(<code>POST /robots/{id}/plan</code> with <code>purpose: diagnosis</code>)" if plannable else
+                   "(chosen by hand: the plan service cannot rebuild "
+                   f"{'this pair' if len(alt) == 1 else 'these pairs'} from the stored calibration, as a cause "
+                   "fitted on a load identified from the data is not among its candidates)")
+            out.append(f"Measure poses that tell {_e(finding_title(f))} apart from "
+                       f"{_e(', '.join(alt)) if len(alt) <= 2 else f'{len(alt)} look-alike causes (listed above)'} "
+                       f"{how}, then calibrate again: the data fit them equally well.")
     for f in findings:
         if f.get("kind") == "unexplained":
             top = (f.get("follows") or [{}])[0]

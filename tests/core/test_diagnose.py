@@ -393,6 +393,20 @@ def test_the_same_joints_at_another_target_are_no_repeat(seed):
     assert both[0] == pytest.approx(one[0], rel=1e-9), (seed, one, both)
 
 
+def test_repeats_tighter_than_the_instrument_are_not_a_repeatability_of_0_um(seed):
+    """Repeated poses that spread no more than the instrument's noise do not resolve the robot's repeatability: the
+    note says so instead of "robot repeatability 0 um" (the iiwa's report)."""
+    meas = null_world(SPRAY, seed).campaign(n=40, repeats=10).meas
+    again = np.flatnonzero(np.arange(meas.n_poses) >= 40)
+    first = [int(np.flatnonzero((meas.joints[:40] == meas.joints[k]).all(1))[0]) for k in again]
+    points = meas.points.copy()
+    points[again] = points[first] + np.random.default_rng(seed).normal(size=(len(again), 3)) * 1e-6
+    tight = dataclasses.replace(meas, points=points)
+    floor, note, basis = noise_floor_mm(tight, tight.noise_sigma_mm())
+    assert basis == "repeats" and "below what the instrument resolves" in note and " 0 um" not in note, note
+    assert floor == pytest.approx(np.sqrt(3 * np.mean(tight.noise_sigma_mm() ** 2)), rel=1e-9), note
+
+
 def test_a_play_read_off_the_noise_gains_nothing_on_held_out_poses(seed):
     """Nothing hidden: a sharp play whose switch the classifier reads off the residual fits the noise of the poses
     it was read from. Each fold finds the switch again on its own training poses, so held-out poses do not see that

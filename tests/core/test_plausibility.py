@@ -145,3 +145,35 @@ def test_the_verdict_names_causes_only_where_a_physical_one_was_found():
     assert verdict("unexplained") == "no physical cause named: structure left that no named cause explains"
     assert verdict("correction", "unexplained").startswith("no physical cause named: 1 correction(s)")
     assert verdict("joint_compliance", "correction") == "causes found; 1 correction(s) of no physical size"
+
+
+def test_a_play_wider_than_the_joints_motion_is_a_correction_and_a_narrower_one_keeps_its_name(seed):
+    """A gear play on a joint that barely moves (the iiwa's A6: 0.41 deg named where it turns < 0.12 deg): a fitted
+    play wider than the joint's travel over the calibration poses cannot be revealed by them, so it is presented as a
+    correction quoting both sizes; a narrower one (same joint, same data) keeps its name. Both sizes are drawn, far
+    below the turn no real joint has (`_judge_sizes`'s other bound), so only the motion bound can decide."""
+    rng = np.random.default_rng(seed)
+    j = int(rng.choice([J3, J4]))
+    world = World(SPRAY, seed)
+    q = world.sample_joints(100)
+    q[:, j] = q[:, j].mean() + (q[:, j] - q[:, j].mean()) * rng.uniform(2e-4, 2e-3)  # a joint that barely moves
+    meas = world.measure(q, payload_kg=[0.0, 20.0])
+    cal = identify(SPRAY, meas, effects=(Backlash((j,)),), folds=0)
+    travel = float(np.ptp(meas.joints[:, j]))
+    name = SPRAY.joint_names[j]
+    for wide in rng.permutation([True, False]):
+        play = travel * (rng.uniform(1.2, 10.0) if wide else rng.uniform(0.05, 0.9))
+        cal.solution.x[-1] = play * rng.choice([1.0, -1.0])
+        f = _finding(cal, (j,))
+        _judge_sizes(cal, [f], meas)
+        present_findings(cal, [f])
+        where = f"seed {seed}, {name}, play {np.degrees(play):.3g} deg, travel {np.degrees(travel):.3g} deg: {f}"
+        assert play < 0.1, where  # below the other bound
+        if not wide:
+            assert f["kind"] == "backlash" and f.get("physical", True) is True and "bound" not in f, where
+            continue
+        assert f["kind"] == "correction" and f["follows"] == "backlash" and f["physical"] is False, where
+        assert (f"a play of {np.degrees(play):.3g} deg on {name}, which turns {np.degrees(travel):.3g} deg"
+                in f["bound"]), where
+        assert f["evidence"].startswith(f"This is a correction that follows the sign of the load on {name}"), where
+        assert f"{name}.backlash = " in f["evidence"], where  # the value it quotes is the table's

@@ -149,6 +149,16 @@ def test_compensate_puts_the_model_on_the_targets(server, mset, model_doc):
                                              json={"targets": [[0, 0, 0]], "seed_joints": [[0] * 6]}), 422)
     assert body["errors"][0]["field"] == "body.seed_joints[0]"
     assert_problem(server.client.post(f"/calibrations/{cal}/compensate", json={"targets": [[0, 0, 0]]}), 422)
+    # one iteration from seeds off by mm is not enough: the reason asks for more, and more reaches the targets
+    few = {"targets": targets[:-1], "seed_joints": seeds[:-1].tolist(), "locked_joints": ["J6"], "max_iter": 1}
+    r = server.client.post(f"/calibrations/{cal}/compensate", json=few)
+    assert r.status_code == 200, r.text
+    short = [why for why in r.json()["reason"] if why]
+    assert short and all("still converging: raise max_iter above 1" in why for why in short), short
+    r = server.client.post(f"/calibrations/{cal}/compensate", json={**few, "max_iter": 60})
+    assert r.status_code == 200 and all(r.json()["reachable"]), r.text
+    body = assert_problem(server.client.post(f"/calibrations/{cal}/compensate", json={**few, "max_iter": 10**6}), 422)
+    assert body["errors"][0]["field"] == "body.max_iter", body
 
 
 @pytest.mark.parametrize("path", ["/robots/nope", "/measurements/nope", "/jobs/nope", "/calibrations/nope",

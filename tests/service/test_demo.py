@@ -20,6 +20,7 @@ from calib_world import KINDS
 from service import demo
 
 from .conftest import ROOT, Server, base_env
+from .test_report_consistency import check_report
 
 UUID = r"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}"
 NUM = r"(\d+\.\d+)"
@@ -112,6 +113,7 @@ def check_story(out: str, err: str, tmp_path, db_path, camp) -> dict:
         server.stop()
     report = tmp_path / "calib-demo-report.html"
     html = report.read_text()
+    check_report(cal, html)  # one number per figure: the report quotes the answer, per-cause figures chain
     assert f"Saved to {report}" in story
     assert html.count('<img src="data:image/png;base64,') == len(cal["plots"]) >= 2
     assert f"{cal['metrics']['holdout_rms_mm']:.3f}" in html

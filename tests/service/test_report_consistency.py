@@ -57,18 +57,54 @@ def page(server, calibrations):  # noqa: F811
 
 
 def test_headline_and_table_quote_the_accuracy_table(page):
-    a, html, text = page
+    assert page[0]["metrics"]["outliers"], page[0]["metrics"]  # this page has two values for a figure: both labelled
+    headline_and_table_quote_the_accuracy_table(*page)
+    figures_chain(page[0])
+
+
+def test_causes_quote_the_findings_and_the_parameter_table(page):
+    causes_quote_the_findings_and_the_parameter_table(*page)
+
+
+def test_every_printed_figure_is_one_of_the_answer(page):
+    every_printed_figure_is_one_of_the_answer(*page)
+
+
+def check_report(a: dict, html: str) -> None:
+    """Every check of this module's page on another answer's report (the demo's, the Motoman's: test_demo.py)."""
+    text = text_of(html)
+    headline_and_table_quote_the_accuracy_table(a, html, text)
+    causes_quote_the_findings_and_the_parameter_table(a, html, text)
+    every_printed_figure_is_one_of_the_answer(a, html, text)
+    figures_chain(a)
+
+
+def figures_chain(a: dict) -> None:
+    """Per-cause figures chain: each finding starts where the one before it ends, the first at the geometric
+    model's held-out error, and a finding's parameters are the parameter table's."""
+    d, table = a["diagnosis"], {p["name"]: p for p in a["parameters"]}
+    at = d["geometric"]["holdout_rms_mm"]
+    for f in d["findings"]:
+        assert f["holdout_rms_before_mm"] == at, (f["kind"], f["holdout_rms_before_mm"], at)
+        at = f["holdout_rms_after_mm"]
+        for p in f["parameters"]:
+            assert (p["value"], p["std"]) == (table[p["name"]]["value"], table[p["name"]]["std"]), p
+
+
+def headline_and_table_quote_the_accuracy_table(a: dict, html: str, text: str) -> None:
     acc = a["accuracy"]
     head, (geo, fin) = acc["headline"], acc["models"]
     n = a["metrics"]["n_poses"]
     # the answer's accuracy defines each figure once, with the poses it counts
     assert head["poses"] == n == geo["holdout_all"]["n"] == fin["holdout_all"]["n"]
-    assert head["final_rms_mm"] == fin["holdout_all"]["rms_mm"] == a["metrics"]["holdout_rms_with_outliers_mm"]
+    m = a["metrics"]  # the figures with outliers are given apart only where the model names some
+    assert head["final_rms_mm"] == fin["holdout_all"]["rms_mm"] == m.get("holdout_rms_with_outliers_mm",
+                                                                         m["holdout_rms_mm"])
     assert head["geometric_rms_mm"] == geo["holdout_all"]["rms_mm"]
     assert fin["holdout"]["rms_mm"] == a["metrics"]["holdout_rms_mm"]
     assert geo["holdout"]["rms_mm"] == a["diagnosis"]["geometric"]["holdout_rms_mm"]
     assert geo["holdout"]["n"] + geo["holdout"]["outliers_left_out"] == n
-    assert fin["holdout"]["outliers_left_out"] == len(a["metrics"]["outliers"]) > 0  # two values: both labelled
+    assert fin["holdout"]["outliers_left_out"] == len(a["metrics"]["outliers"])  # two values: both labelled
     assert head["gain_pct"] == pytest.approx(100 * (1 - head["final_rms_mm"] / head["geometric_rms_mm"]), rel=1e-12)
 
     v = re.search(rf"Accuracy: the calibrated robot is off by ({NUM}) mm RMS at the tool on poses the model did not "
@@ -77,6 +113,7 @@ def test_headline_and_table_quote_the_accuracy_table(page):
     assert v, text[:1500]
     assert v.groups() == (mm(head["final_rms_mm"]), mm(head["geometric_rms_mm"]), f"{head['gain_pct']:.1f}", str(n))
 
+    word = re.search(r'<th class="n">(\w+) counted</th>', html).group(1)
     table = html[html.index('id="accuracy"'):html.index('id="causes"')]
     cells = [[text_of(c).strip() for c in re.findall(r"<td[^>]*>(.*?)</td>", tr)]
              for tr in re.findall(r"<tr[^>]*>(.*?)</tr>", table, flags=re.S)[1:]]
@@ -87,33 +124,44 @@ def test_headline_and_table_quote_the_accuracy_table(page):
     for row in (geo, fin):
         al, own = row["holdout_all"], row["holdout"]
         assert by_label[row["model"]][:4] == [f"all {n}", mm(al["mean_mm"]), mm(al["rms_mm"]), mm(al["max_mm"])]
-        label = f"{row['model']}, the {own['outliers_left_out']} poses it names outliers left out"
+        if not own["outliers_left_out"]:
+            assert not any(k.startswith(row["model"] + ", the ") for k in by_label), by_label
+            continue
+        one = own["outliers_left_out"] == 1
+        label = (f"{row['model']}, the {own['outliers_left_out']} {word[:-1] if one else word} it names "
+                 f"{'an outlier' if one else 'outliers'} left out")
         assert by_label[label] == [str(own["n"]), mm(own["mean_mm"]), mm(own["rms_mm"]), mm(own["max_mm"]),
                                    mm(row["fit"]["rms_mm"])]
-    assert by_label[fin["model"]][4] == mm(a["metrics"]["rms_with_outliers_mm"])
+    assert by_label[fin["model"]][4] == mm(m.get("rms_with_outliers_mm", m["rms_mm"]))
 
 
-def test_causes_quote_the_findings_and_the_parameter_table(page):
-    a, html, text = page
+def causes_quote_the_findings_and_the_parameter_table(a: dict, html: str, text: str) -> None:
     table = {p["name"]: p for p in a["parameters"]}
+    angle_unit = ((a.get("calibrated_model") or {}).get("units") or {}).get("angle", "deg")  # as the report prints
     causes = text[text.index("in plain words"):text.index("What to do next")]
     for f in a["diagnosis"]["findings"]:
-        assert (f"Held-out error without it {mm(f['holdout_rms_before_mm'])} mm, with it "
+        assert (f"Held-out error before it {mm(f['holdout_rms_before_mm'])} mm, with it "
                 f"{mm(f['holdout_rms_after_mm'])} mm: {pct(f['gain_pct'])} less") in causes
-        assert f"At the tool: {mm(f['effect_rms_mm'])} mm RMS" in causes
-        for fp in f["parameters"]:
-            p = table[fp["name"]]  # the size is the table's (the model in use), in plain-words units
-            assert f"{p['name']} {joint_size(p)}" in causes
+        if "effect_rms_mm" in f:  # not for `unexplained`
+            assert f"At the tool: {mm(f['effect_rms_mm'])} mm RMS" in causes
+        said = [table[fp["name"]] for fp in f["parameters"]]  # the sizes are the table's, in plain-words units
+        for group in ([p for p in said if abs(p["value"]) >= 2 * p["std"]], [p for p in said if abs(p["value"]) <
+                                                                           2 * p["std"]]):
+            for p in group[:4]:  # the first four of each; the rest "and N more (the parameter table)"
+                assert f"{p['name']} {joint_size(p)}" in causes, (p, causes)
+            if len(group) > 4:
+                assert f"and {len(group) - 4} more (the parameter table)" in causes
     for p in a["parameters"]:  # the parameter table, in the report's units
-        q = shown(p, "deg") if p.get("effect") else p
-        assert re.search(rf"\b{re.escape(p['name'])} {re.escape(sig(q['value'], q['std']))} ", text), p
+        q = shown(p, angle_unit) if p.get("effect") else p
+        at = [m.start() for m in re.finditer(rf"\b{re.escape(p['name'])} ", text)]
+        assert re.search(rf"\b{re.escape(p['name'])} {re.escape(sig(q['value'], q['std']))} ", text), \
+            (p, [text[i:i + 80] for i in at])
 
 
-def test_every_printed_figure_is_one_of_the_answer(page):
+def every_printed_figure_is_one_of_the_answer(a: dict, html: str, text: str) -> None:
     """Every "<number> mm" and "<number> %" on the page is a figure of the answer formatted as the page formats it,
     or stands in a text of the answer quoted verbatim (the diagnosis's explanation, evidence, notes); the parameter
     table below is checked row by row (test_causes_quote_the_findings_and_the_parameter_table)."""
-    a, html, text = page
     text = text[:text.index("Parameters parameter value")]
     values = _numbers(a, [])
     allowed_mm = {mm(v) for v in values} | {f"{v:.3g}" for v in values}
