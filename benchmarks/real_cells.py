@@ -73,10 +73,10 @@ def load(name: str, root: Path) -> tuple[D.Dataset, RobotModel, Measurements, np
     return ds, model, meas, groups
 
 
-def split(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Row masks (calibration, held out) from split_70_30 over the groups."""
+def split(groups: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Row masks (calibration, held out) from split_70_30 over the groups (split s: seed 1000 + s, s > 0)."""
     ids = np.unique(groups)
-    cal, test = split_70_30(len(ids))
+    cal, test = split_70_30(len(ids), seed)
     return np.isin(groups, ids[cal]), np.isin(groups, ids[test])
 
 
@@ -120,16 +120,18 @@ def _orientation_rows(model: RobotModel, train: Measurements, test: Measurements
             "(mean / RMS / max mm, positions)")
 
 
-def run(name: str, root: str, quick: bool, variant: str = "", diagnose_rows: int | None = None) -> dict:
-    """One table row: before / geometric / diagnosed held-out errors (and timings)."""
+def run(name: str, root: str, quick: bool, variant: str = "", diagnose_rows: int | None = None,
+        split_no: int = 0) -> dict:
+    """One table row: before / geometric / diagnosed held-out errors (and timings) on split `split_no` (0: the
+    fixed seed-0 split; s > 0: seed 1000 + s, as benchmarks.real_diagnosis)."""
     warnings.simplefilter("ignore", RuntimeWarning)
     t0, c0 = time.perf_counter(), time.process_time()
     ds, model, meas, groups = load(name, Path(root))
     if variant == "no_tau":
         meas = dataclasses.replace(meas, tau=None)
-    cal_rows, test_rows = split(groups)
+    cal_rows, test_rows = split(groups, 1000 + split_no if split_no else 0)
     train, test = meas.subset(cal_rows), meas.subset(test_rows)
-    out = {"name": name, "variant": variant, "n_cal": train.n_poses, "n_test": test.n_poses,
+    out = {"name": name, "variant": variant, "split": split_no, "n_cal": train.n_poses, "n_test": test.n_poses,
            "setups": meas.n_setups, "targets": model.n_targets, "rows": model.n_joints,
            "actuated": len(model.actuated_names)}
     out["before"] = _stats(register(model, train), test)
@@ -152,16 +154,52 @@ def run(name: str, root: str, quick: bool, variant: str = "", diagnose_rows: int
         d = diagnose(model, sub)
         out["diagnosed"] = _stats(d.calibration, test)
         out["findings"] = "; ".join(_finding(f) for f in d.findings)
+        out["plausibility"] = plausibility(d, sub)
         out["t_diagnose"] = time.perf_counter() - t1
     out["t_total"], out["cpu_total"] = time.perf_counter() - t0, time.process_time() - c0
     return out
 
 
 def _finding(f: dict) -> str:
-    joints = f.get("joints") or []
+    joints = f.get("significant_joints") or f.get("joints") or []
     if len(joints) > 4:
         joints = [f"{joints[0]} .. {joints[-1]} ({len(joints)} rows)"]
-    return f"{f['kind']} {','.join(joints)}".strip()
+    kind = f"correction ({f['follows']})" if f["kind"] == "correction" else f["kind"]
+    return f"{kind} {','.join(joints)}".strip()
+
+
+def plausibility(d, meas: Measurements) -> str:
+    """Issue 31's bounds, checked on the answer from its parameter table (not from the flags the diagnosis set):
+    the physical findings' compliances below -2 std, plays wider than their joint's travel, and turns beyond
+    PLAUSIBLE_TURN_RAD / PLAUSIBLE_TRAVEL_MM; then the corrections. "ok" when no physical finding breaks one."""
+    from calib_core.diagnose import PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, _basis_context
+
+    cal, model = d.calibration, d.calibration.model
+    table = {p["name"]: p for p in cal.parameters()}
+    ctx = _basis_context(cal, meas)
+    turns = {}
+    for e, v in zip(cal.effects, cal.effect_values):
+        for j, t in e.turns(ctx, v):
+            for n in e.parameter_names(model):
+                turns[n] = max(turns.get(n, 0.0), float(np.abs(t).max()) / (PLAUSIBLE_TRAVEL_MM if
+                                                                            model.prismatic[j] else PLAUSIBLE_TURN_RAD))
+    broken = []
+    for f in d.findings:
+        if f["kind"] in ("correction", "unexplained"):
+            continue
+        for p in (table.get(q["name"], q) for q in f.get("parameters", [])):
+            std = p.get("std") or 0.0
+            if p["name"].endswith(".compliance") and std > 0 and p["value"] < -2 * std:
+                broken.append(f"{p['name']} negative")
+            if p["name"].endswith(".backlash"):
+                j = model.joint_names.index(p["name"].split(".")[0])
+                if abs(p["value"]) > np.ptp(meas.joints[:, j]):
+                    broken.append(f"{p['name']} wider than the travel")
+            if turns.get(p["name"], 0.0) > 1.0:
+                broken.append(f"{p['name']} turns beyond the bound")
+    corrections = [_finding(f) for f in d.findings if f["kind"] == "correction"]
+    return ("BROKEN: " + ", ".join(sorted(set(broken))) if broken else "ok") + (
+        f"; corrections: {', '.join(corrections)}" if corrections else "")
 
 
 def _fmt(s: dict | None) -> str:
@@ -176,16 +214,34 @@ LABELS = {("motoman_leica", ""): "motoman_leica (Leica AT, 1 setup)",
 
 
 def table(results: list[dict], quick: bool) -> str:
-    lines = ["| dataset | cal / held-out rows | before: registered nominal mean / RMS / max (mm) | "
-             "geometric mean / RMS / max (mm) | diagnosed mean / RMS / max (mm) | causes named | wall / CPU (s) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| dataset | split | cal / held-out rows | before: registered nominal mean / RMS / max (mm) | "
+             "geometric mean / RMS / max (mm) | diagnosed mean / RMS / max (mm) | causes named | bounds | "
+             "wall / CPU (s) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         diag = "skipped (--quick)" if quick else _fmt(r.get("diagnosed"))
         if not quick and r["n_diagnose"] < r["n_cal"]:
             diag += f" (diagnosed on {r['n_diagnose']} of the {r['n_cal']} rows)"
-        lines.append(f"| {LABELS.get((r['name'], r['variant']), r['name'] + ' ' + r['variant'])} | "
+        lines.append(f"| {LABELS.get((r['name'], r['variant']), r['name'] + ' ' + r['variant'])} | {r['split']} | "
                      f"{r['n_cal']} / {r['n_test']} | {_fmt(r['before'])} | {_fmt(r['geometric'])} | {diag} | "
-                     f"{r.get('findings', '-') or 'none'} | {r['t_total']:.0f} / {r['cpu_total']:.0f} |")
+                     f"{r.get('findings', '-') or 'none'} | {r.get('plausibility', '-')} | "
+                     f"{r['t_total']:.0f} / {r['cpu_total']:.0f} |")
+    return "\n".join(lines)
+
+
+def means(results: list[dict], quick: bool) -> str:
+    """Per dataset (and variant), the mean over the splits run of each held-out figure."""
+    keys = ["before", "geometric"] + ([] if quick else ["diagnosed"])
+    lines = [f"| dataset | splits | {' | '.join(k + ' mean / RMS / max (mm)' for k in keys)} | bounds broken |",
+             "|---|---|" + "---|" * len(keys) + "---|"]
+    groups: dict = {}
+    for r in results:
+        groups.setdefault((r["name"], r["variant"]), []).append(r)
+    for (name, variant), rs in groups.items():
+        cells = [_fmt({m: float(np.mean([r[k][m] for r in rs])) for m in ("mean_mm", "rms_mm", "max_mm")})
+                 for k in keys]
+        broken = sum(str(r.get("plausibility", "")).startswith("BROKEN") for r in rs)
+        lines.append(f"| {LABELS.get((name, variant), name + ' ' + variant)} | {len(rs)} | {' | '.join(cells)} | "
+                     f"{'-' if quick else f'{broken} of {len(rs)}'} |")
     return "\n".join(lines)
 
 
@@ -197,29 +253,34 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--root", default=str(D.SHARED_DATASETS), help="folder with the dataset folders")
     p.add_argument("--diagnose-rows", type=int, default=None, metavar="N",
                    help=f"at most N calibration rows into the diagnosis, 0 = all (default {DIAGNOSE_ROWS}, others all)")
+    p.add_argument("--splits", type=int, default=1, metavar="S",
+                   help="run splits 0..S-1 (0: the fixed seed-0 split; s: seed 1000 + s) and print their means")
     args = p.parse_args(argv)
     root = Path(args.root)
     missing = [n for n in args.datasets if not (root / n).is_dir()]
     if missing:
         print(f"datasets not found under {root}: {', '.join(missing)}", file=sys.stderr)
         return 2
-    tasks = [(n, "") for n in args.datasets]
+    tasks = [(n, "", s) for n in args.datasets for s in range(args.splits)]
     if "iiwa7_payload" in args.datasets and not args.quick:
-        tasks.append(("iiwa7_payload", "no_tau"))
+        tasks += [("iiwa7_payload", "no_tau", s) for s in range(args.splits)]
     # the slowest first, so that two workers finish together
     order = {"dlr_agile_justin": 0, "hilti_trailblazer": 1, "motoman_leica": 2, "iiwa7_payload": 3}
-    tasks.sort(key=lambda t: (order[t[0]], t[1] == ""))
+    tasks.sort(key=lambda t: (order[t[0]], t[1] == "", t[2]))
     t0 = time.perf_counter()
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as pool:
-            futures = [pool.submit(run, n, str(root), args.quick, v, args.diagnose_rows) for n, v in tasks]
+            futures = [pool.submit(run, n, str(root), args.quick, v, args.diagnose_rows, s) for n, v, s in tasks]
             results = [f.result() for f in futures]
     else:
-        results = [run(n, str(root), args.quick, v, args.diagnose_rows) for n, v in tasks]
-    rank = {(n, v): k for k, (n, v) in enumerate(sorted(tasks, key=lambda t: (DATASETS.index(t[0]), t[1])))}
-    results.sort(key=lambda r: rank[(r["name"], r["variant"])])
-    print(f"## Real cells: held-out error, 70/30 split (seed 0){' --quick' if args.quick else ''}\n")
+        results = [run(n, str(root), args.quick, v, args.diagnose_rows, s) for n, v, s in tasks]
+    results.sort(key=lambda r: (DATASETS.index(r["name"]), r["variant"], r["split"]))
+    what = "split 0 (seed 0)" if args.splits == 1 else f"splits 0..{args.splits - 1}"
+    print(f"## Real cells: held-out error, 70/30 {what}{' --quick' if args.quick else ''}\n")
     print(table(results, args.quick))
+    if args.splits > 1:
+        print("\nMean over the splits:\n")
+        print(means(results, args.quick))
     for r in results:
         if "orientation" in r:
             print(f"\n{r['name']} 6-D rows (qw,qx,qy,qz): {r['orientation']}")
