@@ -36,7 +36,7 @@ from scipy.optimize import least_squares  # noqa: E402
 
 from calib_core import kinematics as K  # noqa: E402
 from calib_core.compensate import _point_and_jacobian, _rows, compensate  # noqa: E402
-from calib_core.diagnose import diagnose  # noqa: E402
+from calib_core.diagnosis import diagnose  # noqa: E402
 from calib_core.identify import CalibratedRobot, identify  # noqa: E402
 from calib_core.model import parse_model  # noqa: E402
 from calib_core.robots import spray7  # noqa: E402

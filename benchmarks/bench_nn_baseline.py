@@ -40,7 +40,7 @@ from scipy.optimize import minimize  # noqa: E402
 
 from benchmarks.accuracy import split_70_30  # noqa: E402
 from calib_core import datasets  # noqa: E402
-from calib_core.diagnose import diagnose  # noqa: E402
+from calib_core.diagnosis import diagnose  # noqa: E402
 from calib_core.identify import evaluate, fold_ids, identify  # noqa: E402
 from calib_core.io import parse_measurements  # noqa: E402
 from calib_core.model import parse_model  # noqa: E402

@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 
 from benchmarks import best_time  # noqa: E402
 from calib_core import kinematics as K  # noqa: E402
-from calib_core.diagnose import diagnose  # noqa: E402
+from calib_core.diagnosis import diagnose  # noqa: E402
 from calib_core.identifiability import structural  # noqa: E402
 from calib_core.io import Measurements  # noqa: E402
 from calib_core.model import parse_model  # noqa: E402

@@ -1,5 +1,5 @@
 """The search for a gear play's switch: full fits spent and fit reached, stopping where the switch has settled
-(diagnose.PLAY_SETTLED) against running every pass, on plays hidden in the independent world.
+(diagnosis.plays.PLAY_SETTLED) against running every pass, on plays hidden in the independent world.
 
 Run: .venv/bin/python -m benchmarks.bench_play_search [--seeds 40] [--settled 0.002]
 """
@@ -13,7 +13,8 @@ import argparse  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from calib_core import diagnose as D  # noqa: E402
+from calib_core.diagnosis import plays as P  # noqa: E402
+from calib_core.diagnosis.fitter import _Fitter  # noqa: E402
 from calib_core.model import parse_model  # noqa: E402
 from calib_core.robots import spray7  # noqa: E402
 from calib_world import World  # noqa: E402
@@ -38,26 +39,26 @@ def _world(model, kind: str, seed: int):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, default=40)
-    ap.add_argument("--settled", type=float, default=D.PLAY_SETTLED)
+    ap.add_argument("--settled", type=float, default=P.PLAY_SETTLED)
     args = ap.parse_args(argv)
     model = parse_model(spray7())
     fits, ratios = {args.settled: 0, -1.0: 0}, []
     for seed in range(1, args.seeds + 1):
         for kind in ("hard_backlash", "soft_backlash"):
             info, meas = _world(model, kind, seed)
-            fit = D._Fitter(model, meas, None, 5, None, 1.0)
+            fit = _Fitter(model, meas, None, 5, None, 1.0)
             geo = fit()
             j = model.joint_names.index(info["joints"][0])
             found = []
             for settled in fits:  # the threshold, then every pass (never settled)
-                D.PLAY_SETTLED = settled
+                P.PLAY_SETTLED = settled
                 n = [0]
 
                 def counted(*a, **k):
                     n[0] += 1
                     return fit(*a, **k)
 
-                found.append(D._identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j], counted))
+                found.append(P._identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j], counted))
                 fits[settled] += n[0]
             rss = lambda p: float(np.sum(fit((p,), geo.x, folds=0).solution.residual ** 2))  # noqa: E731
             ratios += [rss(a) / rss(b) for a, b in zip(*found)]

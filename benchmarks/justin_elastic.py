@@ -2,9 +2,9 @@
 
 The product's own effects, fitted as the `auto` job would fit them once chosen (geometry chosen on held-out
 folds, then the causes jointly): joint compliance on the converter's guessed masses, + the lateral (bearing)
-compliance of every joint, + the mass data identified under both (diagnose._identify_masses), + the motion the
-hands share at a pose weighted as noise of that pose (diagnose._with_pose_noise, kept on held-out folds). Split s is
-`split_70_30(poses, seed=s)` over recorded poses (both hands of a pose on the same side): s = 0 is
+compliance of every joint, + the mass data identified under both (diagnosis.masses._identify_masses), + the motion
+the hands share at a pose weighted as noise of that pose (diagnosis.residual._with_pose_noise, kept on held-out folds).
+Split s is `split_70_30(poses, seed=s)` over recorded poses (both hands of a pose on the same side): s = 0 is
 benchmarks/real_cells.py's split, 1000 + k the k-th split of benchmarks/real_diagnosis.py. --blind adds the
 blind diagnosis (`diagnose` on the calibration part, 5-10 CPU minutes per split) as the last row. --probes asks
 what the fixed forms leave: would the loads taken at the deflected pose (the published model's implicit torque
@@ -30,10 +30,13 @@ import numpy as np  # noqa: E402
 
 from benchmarks.accuracy import split_70_30  # noqa: E402
 from benchmarks.real_cells import load  # noqa: E402
-from calib_core import diagnose as DG  # noqa: E402
 from calib_core import kinematics as K  # noqa: E402
 from calib_core import shared_motion as SM  # noqa: E402
 from calib_core.datasets import SHARED_DATASETS  # noqa: E402
+from calib_core.diagnosis import ALPHA, diagnose  # noqa: E402
+from calib_core.diagnosis.fitter import _Fitter  # noqa: E402
+from calib_core.diagnosis.masses import _identify_masses  # noqa: E402
+from calib_core.diagnosis.residual import _shared_motion, _with_pose_noise  # noqa: E402
 from calib_core.effects import JointCompliance, LateralJointCompliance, candidates  # noqa: E402
 from calib_core.identify import evaluate  # noqa: E402
 from calib_core.select import select_geometry  # noqa: E402
@@ -125,7 +128,7 @@ def fixed_forms(model, train, held) -> list[tuple[str, dict, float, object]]:
     t0 = time.time()
     sel = select_geometry(model, train, loss=None, folds=5)
     out = [("geometric (chosen on held-out folds)", evaluate(sel.calibration, held), time.time() - t0, sel.calibration)]
-    fit = DG._Fitter(model, train, None, 5, sel.free, sel.prior_scale)
+    fit = _Fitter(model, train, None, 5, sel.free, sel.prior_scale)
     named, _ = candidates(model, train)
     joint = next(e for e in named if type(e) is JointCompliance and len(e.joints) > 1)
     lateral = next(e for e in named if isinstance(e, LateralJointCompliance))
@@ -136,12 +139,12 @@ def fixed_forms(model, train, held) -> list[tuple[str, dict, float, object]]:
         out.append((label, evaluate(cur, held), time.time() - t0, cur))
     t0 = time.time()
     notes: list[str] = []
-    masses = DG._identify_masses(cur, list(chosen), [], model, train, fit, notes)
+    masses = _identify_masses(cur, list(chosen), [], model, train, fit, notes)
     out.append(("+ mass data identified under both" + ("" if notes else " (not kept: held-out folds object)"),
                 evaluate(masses, held), time.time() - t0, masses))
     t0 = time.time()
-    found = DG._shared_motion(masses, train, masses.sigma_mm, masses.x_basis) or []
-    weighted = DG._with_pose_noise(masses, fit, train, next((f for f in found if f.p_value < DG.ALPHA), None))
+    found = _shared_motion(masses, train, masses.sigma_mm, masses.x_basis) or []
+    weighted = _with_pose_noise(masses, fit, train, next((f for f in found if f.p_value < ALPHA), None))
     last = masses if weighted is None else weighted[0]
     if weighted is None:
         print("the hands' shared motion as noise of each pose: not kept (held-out folds object)", flush=True)
@@ -217,7 +220,7 @@ def run(split: int, blind: bool = False, probe: bool = False) -> list[tuple[str,
                   f"refitted linearly, then with the probe beside them)", flush=True)
     if blind:
         t0 = time.time()
-        d = DG.diagnose(model, train)
+        d = diagnose(model, train)
         named = "; ".join(f"{f['kind']} {','.join(f['joints'])}" for f in d.findings)
         print(f"split {split}: blind diagnosis named: {named}", flush=True)
         for f in d.findings:

@@ -143,7 +143,7 @@ def run(name: str, root: str, quick: bool, variant: str = "", diagnose_rows: int
     if meas.orientation is not None and variant == "":
         out["orientation"] = _orientation_rows(model, train, test, out["geometric"])
     if not quick:
-        from calib_core.diagnose import diagnose
+        from calib_core.diagnosis import diagnose
 
         cap = DIAGNOSE_ROWS.get(name) if diagnose_rows is None else diagnose_rows
         sub = train
@@ -172,7 +172,8 @@ def plausibility(d, meas: Measurements) -> str:
     """Issue 31's bounds, checked on the answer from its parameter table (not from the flags the diagnosis set):
     the physical findings' compliances below -2 std, plays wider than their joint's travel, and turns beyond
     PLAUSIBLE_TURN_RAD / PLAUSIBLE_TRAVEL_MM; then the corrections. "ok" when no physical finding breaks one."""
-    from calib_core.diagnose import PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, _basis_context
+    from calib_core.diagnosis import PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD
+    from calib_core.diagnosis.plays import _basis_context
 
     cal, model = d.calibration, d.calibration.model
     table = {p["name"]: p for p in cal.parameters()}

@@ -6,7 +6,7 @@ from typing import Callable
 import numpy as np
 
 from . import kinematics as K
-from .diagnose import diagnose
+from .diagnosis import diagnose
 from .orientation import LEVER_MM, MARK, with_orientation, without_virtual
 from .select import select_geometry
 from .io import Measurements

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kinematics as K
-from .diagnose import INDISTINGUISHABLE
+from .diagnosis import INDISTINGUISHABLE
 from .effects import Effect, candidates as effect_candidates
 from .identifiability import analyse, structural
 from .identify import CalibratedRobot, Calibration, identify

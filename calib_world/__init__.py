@@ -1,6 +1,6 @@
 """An independent simulated world: physical robots with hidden mechanical causes, measured by a laser tracker.
 
-It shares NO code with the diagnosis (calib_core.effects, diagnose, identify, kinematics, statics, twin,
+It shares NO code with the diagnosis (calib_core.effects, diagnosis, identify, kinematics, statics, twin,
 solve): its kinematics, statics, causes and noise model are written here from the mechanics, so that a
 diagnosis tested on it proves it finds physics, not its own dictionary entries.  It only reads the
 nominal model (calib_core.model) and returns the contract's Measurements (calib_core.io).

@@ -276,7 +276,7 @@ def cmd_plan(args) -> int:
             print("calib plan: --purpose diagnosis needs --data (the measured set whose diagnosis lists look-alike "
                   "causes)", file=sys.stderr)
             return 2
-        from calib_core.diagnose import diagnose
+        from calib_core.diagnosis import diagnose
 
         print(f"diagnosing {args.data} ({meas.n_poses} poses) ...", file=sys.stderr, flush=True)
         d = diagnose(model, meas)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib_core.diagnose import follows_what
+from calib_core.diagnosis import follows_what
 from calib_core.identify import evaluate, identify
 from calib_core.io import Measurements, write_measurements
 from calib_core.model import LENGTH_TO_MM, RobotModel

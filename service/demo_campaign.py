@@ -63,7 +63,7 @@ def cause_name(f: dict) -> str:
     vocabulary with the correction the diagnosis kept (never a correction it did not make)."""
     if f["kind"] != "unexplained":
         return finding_title(f)
-    if "correction" not in f:  # a step in time order (diagnose._finding of a SessionStep)
+    if "correction" not in f:  # a step in time order (diagnosis.findings._finding of a SessionStep)
         return "a step in time order" + (f" of {', '.join(f['joints'])}" if f.get("joints") else "")
     said = UNEXPLAINED[f["correction"]]
     if f.get("weighted_as_pose_noise"):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from calib_core.diagnose import named_joints
+from calib_core.diagnosis import named_joints
 
 HOLDOUT_NOTE = ("held-out: every pose predicted by the model fitted without it (5-fold cross-validation), "
                 "the poses the model names as outliers left out. "

@@ -13,7 +13,7 @@ from datetime import datetime, timezone
 from html import escape
 from typing import Callable
 
-from calib_core.diagnose import follows_what, named_joints
+from calib_core.diagnosis import follows_what, named_joints
 
 from .figures import (accuracy, counted_word, finding_title, joint_size, mm, model_label,
                       num, observability, pct, plot_list, show_unit, shown, sig, std_str)

@@ -4,7 +4,7 @@ import pytest
 from scipy.optimize import minimize
 
 from calib_core.compensate import Compensation, compensate, nominal_targets, nominal_to_calibrated
-from calib_core.diagnose import diagnose
+from calib_core.diagnosis import diagnose
 from calib_core.identify import identify
 from calib_core.model import parse_model
 from calib_core.robots import arm6, spray7

@@ -7,9 +7,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calib_core.diagnose import (ALPHA, NAMED_SHARE, PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, _Fitter,
-                                 _identified_backlash, _identify_masses, _judge_sizes, _Search, diagnose, holdout_gain,
-                                 holdout_ms, noise_floor_mm, runs_probability, screen)
+from calib_core.diagnosis import (ALPHA, NAMED_SHARE, PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, diagnose, holdout_gain,
+                                  holdout_ms, noise_floor_mm, runs_probability, screen)
+from calib_core.diagnosis.findings import _judge_sizes
+from calib_core.diagnosis.fitter import _Fitter
+from calib_core.diagnosis.masses import _identify_masses
+from calib_core.diagnosis.plays import _identified_backlash
+from calib_core.diagnosis.search import _Search
 from calib_core.effects import CyclicJointError, JointCompliance, LateralJointCompliance, candidates
 from calib_core.identify import CalibratedRobot, evaluate, identify
 from calib_core.model import parse_model
@@ -442,7 +446,7 @@ def test_the_play_search_stops_where_its_switch_has_settled(kind, seed, monkeypa
 
     settled = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j], counted)
     n_settled = len(calls)
-    monkeypatch.setattr("calib_core.diagnose.PLAY_SETTLED", -1.0)  # never settled: every pass
+    monkeypatch.setattr("calib_core.diagnosis.plays.PLAY_SETTLED", -1.0)  # never settled: every pass
     calls.clear()
     every = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j], counted)
     where = (kind, info["joints"], seed, n_settled, len(calls))

@@ -4,8 +4,11 @@ import dataclasses
 
 import numpy as np
 
-from calib_core import diagnose as DG
 from calib_core import kinematics as K
+from calib_core.diagnosis.fitter import _Fitter
+from calib_core.diagnosis.lookalikes import STIFFENING
+from calib_core.diagnosis.masses import _identify_masses, _with_mass_doubt
+from calib_core.diagnosis.plays import _LoadFeatures
 from calib_core.effects import (Backlash, Context, JointCompliance, LateralJointCompliance, LinkDeflection, candidates,
                                 effect_from_state, effect_state)
 from calib_core.effects.gravity import (TILT_PRIOR_RAD, body_parameters, gravity_regressor, lateral_axes, mass_step,
@@ -100,7 +103,7 @@ def _elastic_world(seed, rng, **identified):
     meas = dataclasses.replace(meas, points=truth + rng.normal(0, 0.01, truth.shape), sigma=np.full(200, 0.01))
     fresh, *_ = _poses(seed + 1, 100)
     fresh_truth = world.predict(fresh.joints, fresh)
-    fit = DG._Fitter(TREE, meas, None, 5, None, 1.0)
+    fit = _Fitter(TREE, meas, None, 5, None, 1.0)
     return meas, fit, [JointCompliance(MOVING), LateralJointCompliance(MOVING)], Fresh(fresh, fresh_truth)
 
 
@@ -130,7 +133,7 @@ def test_mass_data_are_identified_under_the_compliances(seed):
     before = fit(chosen)
     findings = [{"form": e.label(TREE), "kind": e.kind, "joints": []} for e in chosen]
     notes = []
-    after = DG._identify_masses(before, chosen, findings, TREE, meas, fit, notes)
+    after = _identify_masses(before, chosen, findings, TREE, meas, fit, notes)
 
     assert err(after) < 0.5 * err(before), (err(before), err(after))
     assert all(e.masses for e in chosen), chosen
@@ -146,7 +149,7 @@ def _assert_mass_doubt_widens(cal, fit, seed):
     at the calibration's own estimate, a Schur complement: refitted, they narrowed by up to 8 %, seed 43)."""
     fresh, *_ = _poses(seed + 1, 100)
     sure = prediction_std_mm(cal, fresh.joints, fresh)
-    DG._with_mass_doubt(cal, fit, TREE)
+    _with_mass_doubt(cal, fit, TREE)
     assert cal.mass_doubt, "the compliances' mass data carry their doubt"
     doubted = prediction_std_mm(cal, fresh.joints, fresh)
     assert (doubted >= 0.999 * sure).all() and doubted.mean() > 1.05 * sure.mean(), (sure.mean(), doubted.mean())
@@ -205,7 +208,7 @@ def test_a_bent_link_carries_the_doubt_of_the_mass_data_it_bends_under(seed):
                             (np.array([2e-11, 1e-11]),), x, ("",))
     truth = world.predict(meas.joints, meas)
     meas = dataclasses.replace(meas, points=truth + rng.normal(0, 0.01, truth.shape), sigma=np.full(200, 0.01))
-    fit = DG._Fitter(TREE, meas, None, 5, None, 1.0)
+    fit = _Fitter(TREE, meas, None, 5, None, 1.0)
     cal = fit([e])
     _assert_mass_doubt_widens(cal, fit, seed)
     assert [c for c, _ in cal.mass_doubt[0].causes] == [e], "the mass step carries the bent link"
@@ -231,7 +234,7 @@ def test_gravity_direction_is_identified_with_the_mass_data(seed):
                                                 gravity=tuple(g_true))
         before = fit(chosen)
         notes = []
-        after = DG._identify_masses(before, chosen, [], TREE, meas, fit, notes)
+        after = _identify_masses(before, chosen, [], TREE, meas, fit, notes)
         found = np.asarray(chosen[1].gravity)
         assert found.shape == (3,) and any("mrad off the model's base z" in n for n in notes), notes
         if not (angle(found, g_true) < angle(TREE.gravity, g_true) / 3 and err(after) < 0.5 * err(before)):
@@ -256,7 +259,7 @@ def test_a_vertical_axis_carries_no_identified_load(seed):
         along = np.abs((chain.z_axis[j] * g).sum(-1)) / np.linalg.norm(g)  # |cos| of the axis against gravity
         no_moment = (along > 1.0 - 1e-12).all() if not model.prismatic[j] else (along < 1e-12).all()
         assert (load_mix_for(chain, j) is None) == no_moment, (model.joint_names[j], along.min(), seed)
-        assert (DG._LoadFeatures.of(chain, meas, j) is None) == no_moment, (model.joint_names[j], seed)
+        assert (_LoadFeatures.of(chain, meas, j) is None) == no_moment, (model.joint_names[j], seed)
 
 
 def test_a_spring_on_a_plays_identified_load_bends_less_and_less_with_it(seed):
@@ -271,7 +274,7 @@ def test_a_spring_on_a_plays_identified_load_bends_less_and_less_with_it(seed):
     j = int(rng.choice([k for k in MOVING if np.ptp(ctx.loads[:, k]) > 0]))
     coef = tuple(rng.normal(size=gravity_regressor(ch, j).shape[1] + 1))
     load = Backlash((j,), transition=1.0, load_coef=coef).load(ctx)
-    r = float(rng.choice(DG.STIFFENING))
+    r = float(rng.choice(STIFFENING))
     spring = JointCompliance((j,), stiffening=r, load_scale=float(np.abs(load).max()), load_coef=coef)
     g = spring.basis(ctx).joint[:, j, 0]
     order = np.argsort(np.abs(load))

@@ -192,7 +192,7 @@ def test_nul_anywhere_is_binary():
 def test_instrument_preset_sets_the_noise_and_the_answer_names_it():
     """Without a sigma column the named preset weights the fit and the floor; a sigma column wins; unknown names
     are refused naming the choices."""
-    from calib_core.diagnose import noise_floor_mm
+    from calib_core.diagnosis import noise_floor_mm
     from calib_core.instruments import INSTRUMENTS
     from calib_core.robots import arm6
 

@@ -3,7 +3,8 @@ correction, never under a physical name, and a finding on several joints says wh
 touched: `present_findings` reads the final model's parameter table."""
 import numpy as np
 
-from calib_core.diagnose import SIGNIFICANT_STD, _judge_sizes, explain, present_findings
+from calib_core.diagnosis import SIGNIFICANT_STD, explain, present_findings
+from calib_core.diagnosis.findings import _judge_sizes
 from calib_core.effects import Backlash, JointCompliance
 from calib_core.identify import identify
 from calib_core.model import parse_model
@@ -28,7 +29,7 @@ def _measured(seed: int, springs: dict[int, float]):
 
 
 def _finding(cal, joints: tuple[int, ...]) -> dict:
-    """A finding as diagnose._finding writes one, with the fitted compliance's parameters."""
+    """A finding as diagnosis.findings._finding writes one, with the fitted compliance's parameters."""
     e = next(e for e in cal.effects if e.joints == joints)
     names = set(e.parameter_names(SPRAY))
     return {"kind": e.kind, "joints": [SPRAY.joint_names[j] for j in joints], "form": e.label(SPRAY),
@@ -134,7 +135,7 @@ def test_the_verdict_names_causes_only_where_a_physical_one_was_found():
     they are (a finding list of one `unexplained` read "causes found; structure left ...")."""
     from types import SimpleNamespace
 
-    from calib_core.diagnose import Diagnosis
+    from calib_core.diagnosis import Diagnosis
 
     def verdict(*kinds):
         d = SimpleNamespace(untested=None, findings=[{"kind": k} for k in kinds])

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calib_core import diagnose as DG
 from calib_core import kinematics as K
+from calib_core.diagnosis import diagnose, holdout_gain
+from calib_core.diagnosis.residual import _shared_motion
 from calib_core.identify import fold_ids, identify, pose_folds
 from calib_core.io import Measurements
 from calib_core.model import parse_model
@@ -78,7 +79,7 @@ def _campaign(tree, rng, motion: str, size_x_noise: float):
 def _found(tree, meas):
     """Every shared motion tried, largest share first."""
     cal = identify(tree, meas, folds=0)
-    return DG._shared_motion(cal, meas, cal.sigma_mm, cal.x)
+    return _shared_motion(cal, meas, cal.sigma_mm, cal.x)
 
 
 def test_poses_group_the_targets_measured_together(tree):
@@ -88,8 +89,8 @@ def test_poses_group_the_targets_measured_together(tree):
     assert len(groups) == N_POSES and all(sorted(meas.target[g]) == [0, 1] for g in groups)
     assert [tree.joint_names[j] for j in shared_joints(tree)] == ["T1", "T2", "T3", "T4"]
     one = meas.subset(np.flatnonzero(meas.target == 0))
-    assert pose_groups(one, tree) == [] and DG._shared_motion(identify(tree, one, folds=0), one, one.noise_sigma_mm(),
-                                                       None) is None
+    assert pose_groups(one, tree) == [] and _shared_motion(identify(tree, one, folds=0), one, one.noise_sigma_mm(),
+                                                    None) is None
 
 
 def test_the_targets_of_a_pose_are_one_unit_in_folds_and_paired_tests(tree, seed):
@@ -110,9 +111,9 @@ def test_the_targets_of_a_pose_are_one_unit_in_folds_and_paired_tests(tree, seed
         return SimpleNamespace(holdout_residual_mm=np.sqrt(d2), inliers=lambda: np.ones(len(d2), bool),
                                pose_index=index)
     base = 10.0 + np.abs(drop).max()
-    single = DG.holdout_gain(stub(np.full(N_POSES, base), None), stub(base - drop, None))
-    paired = DG.holdout_gain(stub(np.full(2 * N_POSES, base), meas.pose_index()),
-                             stub(np.repeat(base - drop, 2), meas.pose_index()))
+    single = holdout_gain(stub(np.full(N_POSES, base), None), stub(base - drop, None))
+    paired = holdout_gain(stub(np.full(2 * N_POSES, base), meas.pose_index()),
+                          stub(np.repeat(base - drop, 2), meas.pose_index()))
     assert paired[0] == pytest.approx(single[0], rel=1e-9), (seed, single, paired)
 
 
@@ -145,7 +146,7 @@ def test_diagnosis_says_the_hands_move_together_only_when_they_do(tree, seed, mo
     follows, with the advice it calls for; each hand's own joints doing so is not."""
     rng = np.random.default_rng(seed)
     meas, *_ = _campaign(tree, rng, motion, rng.uniform(2.0, 3.0))
-    d = DG.diagnose(tree, meas)
+    d = diagnose(tree, meas)
     follows = [f for u in d.findings if u["kind"] == "unexplained" for f in u["follows"]]
     shared = [f for f in follows if f.get("family") == "shared_by_targets"]
     if motion == "torso":
@@ -163,7 +164,7 @@ def test_the_shared_motion_weighed_as_noise_of_each_pose_predicts_fresh_poses_be
     rng = np.random.default_rng(seed)
     meas, _, joint, x = _campaign(tree, rng, "torso", rng.uniform(2.0, 4.0))
     ols = identify(tree, meas, folds=0)
-    s = next(f for f in DG._shared_motion(ols, meas, ols.sigma_mm, ols.x) if f.p_value < 0.01)
+    s = next(f for f in _shared_motion(ols, meas, ols.sigma_mm, ols.x) if f.p_value < 0.01)
     gls = identify(tree, meas, folds=0, pose_noise=pose_noise(ols.robot.chain(meas.joints, meas)[0], meas, s))
     q = sample_uniform(tree, 200, rng)
     target = np.tile([0, 1], 200)

@@ -80,7 +80,7 @@ def test_a_pose_timed_where_a_step_may_lie_is_not_claimed_sure(seed):
     pose timed in that gap may be on either side. Its prediction std carries the step with the chance of the wrong
     side; without it, poses between the fitted and the true moment were off by the whole step at 20-25 sigma
     (benchmarks.detection, arm6 re-homing 4x #2)."""
-    from calib_core.diagnose import diagnose
+    from calib_core.diagnosis import diagnose
     from calib_core.effects import SessionStep
     from calib_world import World
     from calib_world.mechanics import ReHoming
@@ -117,7 +117,7 @@ def test_a_pose_near_where_a_play_switches_is_not_claimed_sure(seed):
     the switch the flank is seldom in doubt (an identified switch found again on resampled poses may still tilt
     past one of them: 0.2 at one pose of seed 121)."""
     from calib_core import kinematics as K
-    from calib_core.diagnose import diagnose
+    from calib_core.diagnosis import diagnose
     from calib_core.effects import Backlash, Context
     from calib_world import World, hide
 

@@ -346,7 +346,7 @@ def test_the_story_names_only_the_correction_the_diagnosis_made(kind, seed):
     """Structure outside the vocabulary, drawn: each finding's name in the story agrees with its evidence. The story
     called every unexplained finding 'corrected by a smooth joint-space field', also when the correction was the
     other joints' offsets (the Motoman as a newcomer runs it), when none helped, and for a step in time order."""
-    from calib_core.diagnose import diagnose
+    from calib_core.diagnosis import diagnose
     from calib_core.model import parse_model
     from calib_core.robots import spray7
     from calib_world import World, hide

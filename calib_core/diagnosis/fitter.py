@@ -1,0 +1,31 @@
+"""The one fit the diagnosis uses: identify() on its data with the options the geometric model was chosen with
+(an identified play's switch is found again on each fold)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..identify import Calibration, identify
+from ..io import Measurements
+from ..model import RobotModel
+from .plays import _identified_play, _refold_plays
+
+
+@dataclass(frozen=True)
+class _Fitter:
+    """identify() on the diagnosis's data with one set of options: the geometry chosen on held-out evidence
+    (free parameters, prior strength), the loss and the folds."""
+
+    model: RobotModel
+    meas: Measurements
+    loss: str | None
+    folds: int
+    free: tuple[str, ...] | None
+    prior_scale: float
+
+    def __call__(self, effects=(), x_ref=None, folds: int | None = None, pose_noise=None) -> Calibration:
+        refold = None
+        if any(_identified_play(e) for e in effects):
+            refold = lambda cal: _refold_plays(self.meas, cal)  # noqa: E731
+        return identify(self.model, self.meas, effects=tuple(effects), loss=self.loss, x_ref=x_ref, free=self.free,
+                        prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold,
+                        pose_noise=pose_noise)

@@ -1,0 +1,195 @@
+"""Which form of a confirmed cause is kept: rivals that explain nearly as much (look-alikes), richer forms of it
+(refinements), a step's exact place, and each finding tested again with the others in the model."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .. import kinematics as K
+from ..effects import Backlash, Context, Effect, JointCompliance, LoadCompliance, has_loads
+from ..effects.structure import at_gap, session_clock
+from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
+from .findings import _finding, _who
+from .screening import Candidate, _thresholds, screen
+
+LOOKALIKE = 0.8
+MAX_LOOKALIKES = 4
+INDISTINGUISHABLE = 1.02
+"""Rivals explaining at least LOOKALIKE of the winner's share are refitted and judged on held-out poses."""
+
+
+def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref, share=None):
+    """Some causes look alike over a limited range (a scale error and a first harmonic, a short link's
+    bending and the compliance of the joint before it): among the significant candidates that explain
+    nearly as much as the winner, keep the best on held-out poses and name the ones it cannot beat."""
+    tried = [(c, trial)]
+    share = LOOKALIKE if share is None else share
+    rivals = [a for a in ranked if a is not c and a.log_p <= thresholds.get(id(a.effect), -np.inf)
+              and a.explained >= share * c.explained]
+    for alt in rivals[:MAX_LOOKALIKES]:
+        tried.append((alt, fit(chosen + [alt.effect], x_ref)))
+    tried.sort(key=lambda t: t[1].metrics()["holdout_rms_mm"])
+    best_fit = tried[0][1]
+    # parsimony: the simplest form that held-out poses cannot show to be worse than the best one
+    by_size = sorted(tried, key=lambda t: (len(t[0].effect.parameter_names(model)), t[1].metrics()["holdout_rms_mm"]))
+    pick = next(t for t in by_size if t is tried[0] or not _better(t[1], best_fit, 0.05))
+    tried.remove(pick)
+    tried.insert(0, pick)
+    best = tried[0][1].metrics()["holdout_rms_mm"]
+    same = lambda e: (e.kind, e.joints, e.harmonic)  # noqa: E731
+    alike = [{**_who(a.effect, model), "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
+             for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best
+             and same(a.effect) != same(tried[0][0].effect)]
+    return tried[0][0], tried[0][1], alike
+
+
+STIFFENING = (0.5, 1.5, 4.0, 12.0, 30.0)
+"""Stiffening ratios (cubic over linear stiffness at the largest load) tried for a found spring."""
+STEP_WINDOW = 8
+"""Poses either side of a found step among which its exact place is sought."""
+SOFT_PLAY = (0.002, 0.07, 0.15, 0.3, 0.5)
+"""Transitions (share of the largest model load) of a sharper or a soft gear play, tried when a play on the
+model's statics is found (the default is 0.02); a play on the identified load has its softness fitted."""
+
+
+def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dict[int, list[Backlash]],
+                 ctx: Context) -> list[Effect]:
+    """Richer forms of an accepted cause, kept only if held-out poses prefer them: a stiffening spring, the
+    load identified from the data instead of the mass data, a play whose switch follows the identified load,
+    a soft play (the joint moves through its play elastically near zero load). ctx: the poses at the reference."""
+    if len(e.joints) != 1:
+        return []
+    j = e.joints[0]
+    out: list[Effect] = []
+    spring_or_play = isinstance(e, (JointCompliance, Backlash)) and not getattr(e, "stiffening", 0)
+    if spring_or_play and has_loads(ctx.model, ctx.meas):
+        # a soft play and a stiffening spring both deflect less and less as the load grows: try both
+        big = float(np.abs(ctx.loads[:, j]).max())
+        out += [JointCompliance(e.joints, stiffening=r, load_scale=big) for r in STIFFENING]
+    if isinstance(e, Backlash) and e.load_coef:
+        # ...also on the load the play found: the model's masses may be off or absent (a spring of 7.8x the noise
+        # on J4 was taken for a soft play on its identified load, 1.8x the noise off the truth; seed 1808188314)
+        big = float(np.abs(e.load(ctx)).max())
+        out += [JointCompliance(e.joints, stiffening=r, load_scale=big, load_coef=e.load_coef,
+                                fitted_softness=e.fitted_softness) for r in STIFFENING]
+    if isinstance(e, JointCompliance) and j in load_pool:
+        out.append(load_pool[j])
+    if isinstance(e, Backlash):
+        share = Backlash.TRANSITION_SHARE
+        if not e.load_coef:
+            out += [dataclasses.replace(e, transition=e.transition / share * t) for t in SOFT_PLAY]
+    if isinstance(e, (Backlash, JointCompliance, LoadCompliance)):
+        out += [p for p in play_pool.get(j, []) if p != e]
+    return out
+
+
+def _merge_alike(alike: list[dict], more: list[dict]) -> list[dict]:
+    """Look-alikes `alike` and those of `more` naming another cause (kind and joints)."""
+    seen = {(a["kind"], tuple(a["joints"])) for a in alike}
+    return alike + [a for a in more if (a["kind"], tuple(a["joints"])) not in seen]
+
+
+def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
+    """Swap the accepted cause for a richer form of it when held-out poses say so: among the forms that are
+    significantly better than it (paired test), the best on held-out poses; the other forms within 2 % of it,
+    or not significantly worse, are look-alikes (a stiffening spring and a soft play both bend less and less
+    as the load grows)."""
+    better = []
+    ctx = Context(model, K.Chain(model, x_ref, fit.meas.joints, None, fit.meas.labels), fit.meas)
+    tried = []
+    for alt in _refinements(c.effect, load_pool, play_pool, ctx):
+        try:  # a form of a cause already found replaces it (a play refined into the spring found before)
+            t = fit([e for e in chosen if _cause(e) != _cause(alt)] + [alt], x_ref)
+        except ValueError:
+            continue
+        tried.append((alt, t))
+        if _better(trial, t, REFINE_ALPHA):
+            better.append((alt, t))
+    best, t = min(better, key=lambda at: at[1].metrics()["holdout_rms_mm"]) if better else (c.effect, trial)
+    h = t.metrics()["holdout_rms_mm"]
+    alike = [{**_who(a, model), "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
+             for a, ta in tried if a is not best and a.kind != best.kind
+             and (ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h or not _better(ta, t, 0.05))]
+    alike = list({(a["kind"], tuple(a["joints"]), a.get("harmonic")): a for a in alike}.values())  # one per cause
+    if best is c.effect:
+        return c, trial, alike
+    return Candidate(**{**c.__dict__, "effect": best, "label": best.label(model)}), t, alike
+
+
+def _refine_step(c, trial, chosen, model, meas, fit, x_ref):
+    """Place an accepted step exactly: every gap between consecutive poses in time order near the searched
+    one is tried (a fit each), the best by its residual is kept if held-out poses do not object."""
+    clock, _ = session_clock(meas)
+    order = np.sort(clock)
+    k = int(np.searchsorted(order, c.effect.at))
+    gaps = range(max(k - STEP_WINDOW, 1), min(k + STEP_WINDOW, len(order) - 1) + 1)
+    best = None
+    for i in gaps:
+        e = dataclasses.replace(c.effect, **at_gap(order, i, c.effect.source))
+        rss = float(np.sum(fit(chosen + [e], x_ref, folds=0).solution.residual ** 2))
+        if best is None or rss < best[0]:
+            best = (rss, e)
+    if best is None or best[1] == c.effect:
+        return c, trial
+    t = fit(chosen + [best[1]], x_ref)
+    if _holdout_rms_every_pose(t) > _holdout_rms_every_pose(trial):
+        return c, trial
+    return Candidate(**{**c.__dict__, "effect": best[1], "label": best[1].label(model)}), t
+
+
+def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, floor, rejected, load_pool):
+    """Greedy order can mislead when causes overlap: test each finding again against its look-alikes with
+    every other finding in the model; swap it for a better one, or name the ones it cannot beat. A form swapped in
+    gets its richer forms tried (_refine), as a form the search accepted does. A finding the others explain goes to
+    `rejected`, with the figures."""
+    k = 0
+    while k < len(chosen):
+        others = chosen[:k] + chosen[k + 1:]
+        base = fit(others, current.x)
+        if not _better(base, current, HOLDOUT_ALPHA):  # the others explain what it did: it goes
+            p, _ = holdout_gain(base, current)
+            hb, hc = base.metrics()["holdout_rms_mm"], current.metrics()["holdout_rms_mm"]
+            rejected.append({**_who(chosen[k], model), "why": f"found earlier, but with the other findings in the "
+                             f"model held-out poses no longer confirm it ({hb:.3f} mm without it, {hc:.3f} mm with "
+                             f"it, paired p = {p:.1e})"})
+            del chosen[k], findings[k]
+            current = base
+            continue
+        k += 1
+        taken = {_cause(e) for e in others}  # one form per cause (_cause)
+        rest = [e for e in pool if _cause(e) not in taken]
+        if chosen[k - 1] not in rest:
+            rest.append(chosen[k - 1])
+        ranked, _ = screen(base, meas, sigma, rest, current.x, alpha)
+        mine = next((c for c in ranked if c.effect == chosen[k - 1]), None)
+        if mine is None:
+            continue
+        thresholds = _thresholds(rest, alpha)
+        c, _, alike = _best_of_lookalikes(mine, current, ranked, thresholds, model, fit, others, current.x,
+                                          share=0.5)
+        if c is not mine:
+            chosen[k - 1] = c.effect
+            current = fit(chosen, current.x)
+            # never refined when the search took the spread form instead (a stiffening spring on J3 found as the
+            # compliance of J3-J7, then J3's linear one here: 0.83x the noise off the truth, 0.30x stiffening)
+            c, _, forms = _refine(c, current, others, load_pool, {}, model, fit, current.x)
+            alike = _merge_alike(alike, forms)
+            if c.effect != chosen[k - 1]:
+                chosen[k - 1] = c.effect
+                current = fit(chosen, current.x)
+        else:  # it stays: so do the forms _refine could not tell from it
+            alike = _merge_alike(alike, findings[k - 1].get("indistinguishable_from", []))
+        findings[k - 1] = _finding(c, model, base, current, floor, alike, meas)
+    return current
+
+
+def _cause(e: Effect):
+    """What a candidate is a form of: a joint's play or compliance is one cause whatever its form (sharp or soft, on
+    the mass data or the identified load, linear or stiffening), so its forms replace each other (_refine), never add
+    up (a soft play beside a sharp one passed the held-out test on one arm6 world and doubled the error on fresh
+    poses); any other cause is itself on the model's mass data."""
+    if isinstance(e, (Backlash, JointCompliance, LoadCompliance)) and len(e.joints) == 1:
+        return e.kind, e.joints
+    identified = getattr(e, "masses", ()) or getattr(e, "gravity", ())
+    return dataclasses.replace(e, masses=(), gravity=()) if identified else e

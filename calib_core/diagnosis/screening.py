@@ -1,0 +1,134 @@
+"""Screening: every candidate cause scored by the linearised F-test of adding its columns to the current model,
+with the Bonferroni thresholds per family (named causes, steps in time order)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from .. import kinematics as K
+from ..effects import Context, Effect, SessionStep
+from ..effects.residual import PRIOR_STD_MM, ResidualField
+from ..identify import Calibration, effect_bases
+from ..io import Measurements
+
+TIME_SHARE = 0.2
+"""Share of ALPHA spent on steps in time order; the rest on the named causes."""
+ABSORBED = 1e-3
+"""A candidate's unit column keeping less than this norm outside the current model's span is absorbed by it."""
+
+
+@dataclass
+class Candidate:
+    effect: Effect
+    label: str
+    p_value: float
+    log_p: float
+    F: float
+    explained: float  # fraction of the weighted residual sum of squares it explains
+    beyond_chance: float  # the same less the share its degrees of freedom would explain of pure noise
+    bic: float  # Bayesian information criterion of the model with it: ranks candidates past p underflow
+    effect_rms_mm: float  # RMS of the part of its displacement the current model cannot absorb
+    regressor: np.ndarray
+    regressor_label: str
+    projected_residual_mm: np.ndarray  # residual along the effect's direction, per pose
+    fitted_mm: np.ndarray  # the effect's fitted displacement along the same direction
+
+
+def _robust_sigma(cal: Calibration, sigma: np.ndarray) -> np.ndarray:
+    """Per-pose sigma with the fit's robust weights folded in: a pose the loss down-weighted as an outlier
+    counts as little in the tests as it did in the fit."""
+    return sigma / np.sqrt(np.maximum(cal.solution.weights, 1e-6))
+
+
+def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray):
+    """Weighted residual (m,), orthonormal basis of the current model's Jacobian (m, r), and the chain."""
+    model = cal.model
+    chain, dp = cal.robot.chain(meas.joints, meas)
+    r = (meas.points - chain.p - dp) / sigma[:, None]
+    cols = [chain.jacobian()[:, :, cal.free]]
+    if cal.effects:
+        Pq, Pp = effect_bases(model, meas, list(cal.effects), x_ref if cal.x_basis is None else cal.x_basis, cal.R0)
+        cols.append(np.einsum("nij,njk->nik", chain.joint_jacobian(), Pq) + Pp)
+    J = (np.concatenate(cols, axis=2) / sigma[:, None, None]).reshape(len(r.ravel()), -1)
+    norms = np.linalg.norm(J, axis=0)
+    U, s, _ = np.linalg.svd(J / np.where(norms > 0, norms, 1.0), full_matrices=False)  # unit-free rank
+    Q = U[:, s > s[0] * 1e-8]
+    return r.ravel(), Q, chain
+
+
+def _weighted_columns(e: Effect, ctx: Context, Jq: np.ndarray, sigma: np.ndarray):
+    """The effect's columns of the coupled Jacobian, weighted, (m, k), and its basis."""
+    b = e.basis(ctx)
+    k = len(e.parameter_names(ctx.model))
+    C = np.zeros((ctx.meas.n_poses, 3, k))
+    if b.joint is not None:
+        C += np.einsum("nij,njk->nik", Jq, b.joint)
+    if b.cart is not None:
+        C += b.cart
+    return (C / sigma[:, None, None]).reshape(-1, k), b
+
+
+def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[Effect], x_ref: np.ndarray,
+           alpha: float) -> tuple[list[Candidate], float]:
+    """Score every candidate by the F-test of adding it to the current model (linearised at its solution).
+
+    Also returns the share of the residual a smooth joint-space field (ridge) explains beyond chance (less the
+    share it fits of pure noise, trace(H^2) / dof of its hat matrix H): a named cause that explains far less
+    than the field beyond chance is only picking up part of a broader structure. Without the correction a field
+    of a few hundred effective parameters "explains" 75 % of a residual that is mostly noise, and a real cause
+    half the noise's size is thrown away."""
+    model = cal.model
+    sigma = _robust_sigma(cal, sigma)
+    r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
+    ctx = Context(model, K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels), meas)
+    Jq = chain.joint_jacobian()
+    m, p = len(r), Q.shape[1]
+    rss = float(r @ r)
+    out = []
+    for e in pool:
+        Cw, b = _weighted_columns(e, ctx, Jq, sigma)
+        norms = np.linalg.norm(Cw, axis=0)
+        if not np.all(norms > 0):
+            continue
+        Cp = Cw / norms - Q @ (Q.T @ (Cw / norms))
+        U, sv, _ = np.linalg.svd(Cp, full_matrices=False)
+        k = int((sv > ABSORBED).sum())  # the directions the current model cannot absorb
+        if k == 0:
+            continue
+        fit = U[:, :k] @ (U[:, :k].T @ r)
+        drss = float(fit @ fit)
+        k_test = k + int(getattr(e, "search_dof", 0))
+        dof2 = m - p - k_test
+        if dof2 <= 0:
+            continue
+        F = (drss / k_test) / max((rss - drss) / dof2, 1e-300)
+        log_p = float(stats.f.logsf(F, k_test, dof2))
+        disp = fit.reshape(-1, 3) * sigma[:, None]  # mm
+        direction = disp / np.maximum(np.linalg.norm(disp, axis=1, keepdims=True), 1e-300)
+        res_mm = r.reshape(-1, 3) * sigma[:, None]
+        out.append(Candidate(
+            effect=e, label=e.label(model), p_value=float(np.exp(log_p)), log_p=log_p, F=float(F),
+            explained=drss / rss, beyond_chance=drss / rss - k_test / (m - p),
+            bic=m * np.log(max(rss - drss, 1e-300) / m) + k_test * np.log(m),
+            effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
+            regressor=b.regressor, regressor_label=b.regressor_label,
+            projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
+    field = ResidualField((), length_scale=1.0, prior_std=max(PRIOR_STD_MM, 2.0 * cal.metrics()["holdout_rms_mm"]))
+    Cw, _ = _weighted_columns(field, ctx, Jq, sigma)
+    Cp = Cw - Q @ (Q.T @ Cw)
+    ridge = np.eye(Cp.shape[1]) / field.prior_std**2
+    fit = Cp @ np.linalg.solve(Cp.T @ Cp + ridge, Cp.T @ r)
+    s2 = np.linalg.svd(Cp, compute_uv=False) ** 2
+    chance = float(np.sum((s2 / (s2 + 1.0 / field.prior_std**2)) ** 2))  # E|H e|^2 / sigma^2 = trace(H^2)
+    return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss - chance / (m - p)
+
+
+def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
+    """Log Bonferroni threshold per candidate: ALPHA split between the named causes and the time steps."""
+    steps = [e for e in pool if isinstance(e, SessionStep)]
+    named = len(pool) - len(steps)
+    a_named = alpha * (1.0 - TIME_SHARE) if steps else alpha
+    return {id(e): np.log((alpha * TIME_SHARE / len(steps)) if isinstance(e, SessionStep) else a_named / max(named, 1))
+            for e in pool}
