@@ -170,8 +170,9 @@ def _finding(f: dict) -> str:
 
 def plausibility(d, meas: Measurements) -> str:
     """Issue 31's bounds, checked on the answer from its parameter table (not from the flags the diagnosis set):
-    the physical findings' compliances below -2 std, plays wider than their joint's travel, and turns beyond
-    PLAUSIBLE_TURN_RAD / PLAUSIBLE_TRAVEL_MM; then the corrections. "ok" when no physical finding breaks one."""
+    the physical findings' compliances below -2 std (unless the finding names the joint negative and not as its
+    cause: `negative_joints`), plays wider than their joint's travel, and turns beyond PLAUSIBLE_TURN_RAD /
+    PLAUSIBLE_TRAVEL_MM; then the corrections. "ok" when no physical finding breaks one."""
     from calib_core.diagnosis import PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD
     from calib_core.diagnosis.plays import _basis_context
 
@@ -184,14 +185,17 @@ def plausibility(d, meas: Measurements) -> str:
             for n in e.parameter_names(model):
                 turns[n] = max(turns.get(n, 0.0), float(np.abs(t).max()) / (PLAUSIBLE_TRAVEL_MM if
                                                                             model.prismatic[j] else PLAUSIBLE_TURN_RAD))
-    broken = []
+    broken, declared = [], []
     for f in d.findings:
         if f["kind"] in ("correction", "unexplained"):
             continue
         for p in (table.get(q["name"], q) for q in f.get("parameters", [])):
             std = p.get("std") or 0.0
             if p["name"].endswith(".compliance") and std > 0 and p["value"] < -2 * std:
-                broken.append(f"{p['name']} negative")
+                if p["name"].split(".")[0] in (f.get("negative_joints") or []):  # not named: said as a correction
+                    declared.append(f"{p['name']} negative, not named (a correction within {f['kind']})")
+                else:
+                    broken.append(f"{p['name']} negative")
             if p["name"].endswith(".backlash"):
                 j = model.joint_names.index(p["name"].split(".")[0])
                 if abs(p["value"]) > np.ptp(meas.joints[:, j]):
@@ -200,7 +204,7 @@ def plausibility(d, meas: Measurements) -> str:
                 broken.append(f"{p['name']} turns beyond the bound")
     corrections = [_finding(f) for f in d.findings if f["kind"] == "correction"]
     return ("BROKEN: " + ", ".join(sorted(set(broken))) if broken else "ok") + (
-        f"; corrections: {', '.join(corrections)}" if corrections else "")
+        f"; corrections: {', '.join(corrections + declared)}" if corrections or declared else "")
 
 
 def _fmt(s: dict | None) -> str:

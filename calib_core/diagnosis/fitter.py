@@ -2,7 +2,7 @@
 (an identified play's switch is found again on each fold)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ..identify import Calibration, identify
 from ..io import Measurements
@@ -13,7 +13,9 @@ from .plays import _identified_play, _refold_plays
 @dataclass(frozen=True)
 class _Fitter:
     """identify() on the diagnosis's data with one set of options: the geometry chosen on held-out evidence
-    (free parameters, prior strength), the loss and the folds."""
+    (free parameters, prior strength), the loss and the folds. A fit that adds causes to the last one starts where
+    that one ended (identify's `start`): LM then takes a step or two instead of the whole way from nominal, to the
+    same optimum."""
 
     model: RobotModel
     meas: Measurements
@@ -21,11 +23,14 @@ class _Fitter:
     folds: int
     free: tuple[str, ...] | None
     prior_scale: float
+    last: list = field(default_factory=list, compare=False, repr=False)
 
     def __call__(self, effects=(), x_ref=None, folds: int | None = None, pose_noise=None) -> Calibration:
         refold = None
         if any(_identified_play(e) for e in effects):
             refold = lambda cal: _refold_plays(self.meas, cal)  # noqa: E731
-        return identify(self.model, self.meas, effects=tuple(effects), loss=self.loss, x_ref=x_ref, free=self.free,
-                        prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold,
-                        pose_noise=pose_noise)
+        cal = identify(self.model, self.meas, effects=tuple(effects), loss=self.loss, x_ref=x_ref, free=self.free,
+                       prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold,
+                       pose_noise=pose_noise, start=self.last[0] if self.last else None)
+        self.last[:] = [cal]
+        return cal

@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 
 from ..effects import Backlash, Effect, JointCompliance, LoadCompliance, SessionStep, candidates
-from ..effects.residual import fit_residual_field
+from ..effects.residual import LENGTH_SCALES, fit_residual_field
 from ..effects.structure import step_candidates
 from ..identify import Calibration, identify
 from ..io import Measurements
@@ -25,7 +25,7 @@ from .masses import (_distributed, _identify_masses, _lateral, _load_pool, _mass
                      _on_model_masses, _with_mass_doubt)
 from .noise import _excess, _unmodelled_mm, noise_floor_mm
 from .plays import _identified_backlash, _play_not_outliers, _with_switch_doubt
-from .residual import _drive_field, _follows, _unexplained_finding, _with_pose_noise
+from .residual import _drive_field, _follows, _unexplained_finding, _with_pose_noise, field_scale
 from .result import Diagnosis, explain
 from .screening import Candidate, _thresholds, screen
 from .time_structure import _flagged_in_runs, _outlier_note
@@ -103,7 +103,7 @@ class _Search:
         play_joints = sorted(j for j in active if ("backlash", (j,)) not in taken)
         if play_joints:
             say(f"finding where a play would switch on {', '.join(model.joint_names[j] for j in play_joints)}")
-        plays = _identified_backlash(self.current, meas, sigma, x_ref, play_joints, fit,
+        plays = _identified_backlash(self.current, meas, sigma, x_ref, play_joints,
                                      lambda: self.late("where a play would switch on the joints whose load shows"))
         play_pool: dict[int, list[Backlash]] = {}
         for b in plays:
@@ -322,7 +322,9 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         if follows or basis != "assumed" or held_out_rms / floor > NOISE_LIKE:
             trial = None
             fitted = [] if search.late("a smooth correction of what is left") else [
-                fit_residual_field(fit, current, chosen, x_ref), _drive_field(fit, chosen, x_ref, follows)]
+                fit_residual_field(fit, current, chosen, x_ref,
+                                   (field_scale(current, meas, x_ref, folds),) if folds > 1 else LENGTH_SCALES),
+                _drive_field(fit, chosen, x_ref, follows)]
             for t, rf in sorted([f for f in fitted if f], key=lambda f: f[0].metrics()["holdout_rms_mm"]):
                 if _better(current, t, HOLDOUT_ALPHA):
                     trial = (t, rf)

@@ -83,12 +83,17 @@ class ResidualField(Effect):
         return "a smooth error over joint space that no named cause explains"
 
 
-def fit_residual_field(fit, current, chosen, x_ref):
-    """Best field by held-out RMS over the length scales, fitted jointly with geometry and chosen effects
+def field_prior_std(current) -> float:
+    """The field's ridge prior std (mm per unit feature): on the scale of the residual it is to correct."""
+    return max(PRIOR_STD_MM, 2.0 * current.metrics()["holdout_rms_mm"])
+
+
+def fit_residual_field(fit, current, chosen, x_ref, scales=LENGTH_SCALES):
+    """Best field by held-out RMS over the length scales `scales`, fitted jointly with geometry and chosen effects
     (`fit(effects, x_ref)` identifies on the diagnosis's data and options)."""
     best = None
-    prior = max(PRIOR_STD_MM, 2.0 * current.metrics()["holdout_rms_mm"])  # ridge on the scale of the residual
-    for ls in LENGTH_SCALES:
+    prior = field_prior_std(current)
+    for ls in scales:
         rf = ResidualField((), length_scale=ls, prior_std=prior)
         try:
             cal = fit(tuple(chosen) + (rf,), x_ref)

@@ -12,6 +12,7 @@ from calib_core.diagnosis import (ALPHA, NAMED_SHARE, PLAUSIBLE_TRAVEL_MM, PLAUS
 from calib_core.diagnosis.findings import _judge_sizes
 from calib_core.diagnosis.fitter import _Fitter
 from calib_core.diagnosis.masses import _identify_masses
+from calib_core.diagnosis import plays as plays_module
 from calib_core.diagnosis.plays import _identified_backlash
 from calib_core.diagnosis.search import _Search
 from calib_core.effects import CyclicJointError, JointCompliance, LateralJointCompliance, candidates
@@ -419,7 +420,7 @@ def test_a_play_read_off_the_noise_gains_nothing_on_held_out_poses(seed):
     meas = null_world(SPRAY, seed).campaign(n=150).meas
     fit = _Fitter(SPRAY, meas, None, 5, None, 1.0)
     geo = fit()
-    plays = [p for p in _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [1, 2, 3], fit) if not p.fitted_softness]
+    plays = [p for p in _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [1, 2, 3]) if not p.fitted_softness]
     assert plays, seed  # J2-J4's loads change sign on the random poses
     ratios = [holdout_ms(fit([p], geo.x)) / holdout_ms(geo) for p in plays]
     assert np.mean(ratios) > 0.99, (ratios, seed)
@@ -428,27 +429,29 @@ def test_a_play_read_off_the_noise_gains_nothing_on_held_out_poses(seed):
 @pytest.mark.parametrize("kind", PLAYS)
 def test_the_play_search_stops_where_its_switch_has_settled(kind, seed, monkeypatch):
     """A hidden play (drawn joint, size, seed): the search for its switch stops once a pass moves no pose's flank
-    by more than PLAY_SETTLED (a refit would give back nearly the same fit). It fits fewer models than running
-    every pass, finds the same forms, and they fit the poses about as well (passes past the settled point only
+    by more than PLAY_SETTLED (a refit would give back nearly the same fit). It refits the play fewer times than
+    running every pass, finds the same forms, and they fit the poses about as well (passes past the settled point only
     creep, or flip a pose that sits at the switch)."""
     world, info, meas = _world(kind, _size(seed), seed)
     fit = _Fitter(SPRAY, meas, None, 5, None, 1.0)
     geo = fit()
     j = SPRAY.joint_names.index(info["joints"][0])
     calls = []
+    refit = plays_module._with_play_refitted
 
     def counted(*a, **k):
         calls.append(1)
-        return fit(*a, **k)
+        return refit(*a, **k)
 
     def rss(play):
         return float(np.sum(fit((play,), geo.x, folds=0).solution.residual ** 2))
 
-    settled = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j], counted)
+    monkeypatch.setattr(plays_module, "_with_play_refitted", counted)
+    settled = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j])
     n_settled = len(calls)
-    monkeypatch.setattr("calib_core.diagnosis.plays.PLAY_SETTLED", -1.0)  # never settled: every pass
+    monkeypatch.setattr(plays_module, "PLAY_SETTLED", -1.0)  # never settled: every pass
     calls.clear()
-    every = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j], counted)
+    every = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j])
     where = (kind, info["joints"], seed, n_settled, len(calls))
     assert settled and [p.fitted_softness for p in settled] == [p.fitted_softness for p in every], where
     # a switch that still moves in the last pass never settles: then the same passes, the same plays (CI seed

@@ -1,0 +1,137 @@
+"""The blind diagnosis's run time, this code against another revision, on the same data in the same run (issue 32).
+
+Cases: the four real datasets as `calib convert-dataset` writes them (70/30 split by pose, seed 0; the diagnosis runs
+on the 70 %, its extended model is judged on the 30 % it never saw) and the independent world (spray7, mass data
+15 % off, one drawn cause at 5x the noise) at 150 and 2000 poses. Each case runs in its own process, one BLAS
+thread, with PYTHONPATH set to the revision's tree (a `git worktree` made once under /tmp), so both revisions see
+the same machine at the same time. Per case: wall time and its ratio, the findings (kind and joints) and the
+held-out RMS on the 30 % (or on 100 fresh world poses), with their relative difference.
+
+Run: .venv/bin/python -m benchmarks.bench_diagnosis_speed [--base REV] [--cases motoman iiwa justin hilti w150 w2000]
+     [--jobs 2]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BASE = "c65e151"
+"""The code at the start of issue 32's speed work (the session's first commit)."""
+CASES = ("motoman", "iiwa", "justin", "hilti", "w150", "w2000")
+
+CHILD = r'''
+import json, os, sys, time
+import numpy as np
+try:
+    from calib_core.diagnosis import diagnose
+except ImportError:
+    from calib_core.diagnose import diagnose
+from calib_core import datasets as D
+from calib_core.identify import evaluate
+from calib_core.io import parse_measurements
+from calib_core.model import parse_model
+
+case, root = sys.argv[1], sys.argv[2]
+if case.startswith("w"):
+    from calib_core.robots import spray7
+    from calib_world import World
+    from calib_world.scenarios import hide
+    model = parse_model(spray7())
+    n = int(case[1:])
+    world = World(model, 7)
+    q = world.sample_joints(n + 100, np.random.default_rng(7))
+    hide(world, "joint_spring", 5.0, np.random.default_rng(7), q=q[:n])
+    meas = world.measure(q)
+    train, test = meas.subset(np.arange(n)), meas.subset(np.arange(n, n + 100))
+else:
+    name = {"motoman": "motoman_leica", "iiwa": "iiwa7_payload", "justin": "dlr_agile_justin",
+            "hilti": "hilti_trailblazer"}[case]
+    ds = {"motoman_leica": lambda: D.motoman_leica(root),
+          "iiwa7_payload": lambda: D.iiwa7_payload(None, root, orientation=True, torques=True),
+          "dlr_agile_justin": lambda: D.agile_justin_tree(root),
+          "hilti_trailblazer": lambda: D.hilti_trailblazer(root)}[name]()
+    model = parse_model(ds.model)
+    meas = parse_measurements(ds.csv_text, model, instrument="optical" if name == "iiwa7_payload" else None)
+    groups = (np.array([int(p.split("-")[0]) for p in meas.point_ids]) if name == "dlr_agile_justin"
+              else np.arange(meas.n_poses))
+    ids = np.unique(groups)
+    perm = np.random.default_rng(0).permutation(len(ids))
+    k = int(round(0.7 * len(ids)))
+    cal = np.isin(groups, ids[np.sort(perm[:k])])
+    train, test = meas.subset(cal), meas.subset(~cal)
+t = time.perf_counter()
+d = diagnose(model, train)
+wall = time.perf_counter() - t
+found = [f"{f['kind']}{'(' + f['follows'] + ')' if f['kind'] == 'correction' else ''} "
+         f"{','.join(f.get('joints') or [])}".strip() for f in d.findings]
+print(json.dumps({"wall_s": wall, "findings": found, "heldout_rms_mm": evaluate(d.calibration, test)["rms_mm"],
+                  "search_complete": not d.untested}))
+'''
+
+
+def tree_of(rev: str) -> Path:
+    """A worktree of `rev` under /tmp (made once); the current tree for 'HEAD+' (uncommitted changes included)."""
+    if rev == "HEAD+":
+        return ROOT
+    sha = subprocess.run(["git", "rev-parse", "--short", rev], cwd=ROOT, capture_output=True, text=True,
+                         check=True).stdout.strip()
+    path = Path(f"/tmp/calib-bench-{sha}")
+    if not path.exists():
+        subprocess.run(["git", "worktree", "add", "--detach", str(path), sha], cwd=ROOT, check=True,
+                       capture_output=True)
+    return path
+
+
+def run(case: str, tree: Path, root: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
+               MKL_NUM_THREADS="1", CALIB_SHARED_DATASETS=root)
+    r = subprocess.run([sys.executable, "-c", CHILD, case, root], cwd=tree, env=env, capture_output=True, text=True)
+    if r.returncode != 0:
+        return {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_diagnosis_speed", description=__doc__.splitlines()[0])
+    p.add_argument("--base", default=BASE, help=f"the revision to compare with (default {BASE})")
+    p.add_argument("--new", default="HEAD+", help="this code: HEAD+ (the working tree, default) or a revision")
+    p.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
+    p.add_argument("--jobs", type=int, default=2, help="cases run at once (processes)")
+    p.add_argument("--root", default=os.environ.get("CALIB_SHARED_DATASETS", str(ROOT.parent / "shared" / "datasets")))
+    args = p.parse_args(argv)
+    base, new = tree_of(args.base), tree_of(args.new)
+    t0 = time.perf_counter()
+    tasks = [(c, which, tree) for c in args.cases for which, tree in (("base", base), ("new", new))]
+    with ThreadPoolExecutor(args.jobs) as pool:  # each task is its own process; threads only wait
+        done = list(pool.map(lambda t: (t[0], t[1], run(t[0], t[2], args.root)), tasks))
+    out: dict = {}
+    for case, which, res in done:
+        out.setdefault(case, {})[which] = res
+    print(f"## The diagnosis's run time: {args.new} against {args.base} ({args.jobs} at once, one BLAS thread each)\n")
+    print("| case | base (s) | new (s) | speed-up | findings base | findings new | held-out RMS base -> new (mm) | "
+          "complete base / new |")
+    print("|---|---|---|---|---|---|---|---|")
+    for case in args.cases:
+        b, n = out[case]["base"], out[case]["new"]
+        if "error" in b or "error" in n:
+            print(f"| {case} | {b.get('error', '')} | {n.get('error', '')} | | | | | |")
+            continue
+        diff = 100.0 * (n["heldout_rms_mm"] / b["heldout_rms_mm"] - 1.0)
+        same = "" if b["findings"] == n["findings"] else " **differ**"
+        print(f"| {case} | {b['wall_s']:.1f} | {n['wall_s']:.1f} | {b['wall_s'] / n['wall_s']:.1f}x | "
+              f"{'; '.join(b['findings']) or 'none'} | {'; '.join(n['findings']) or 'none'}{same} | "
+              f"{b['heldout_rms_mm']:.3f} -> {n['heldout_rms_mm']:.3f} ({diff:+.1f} %) | "
+              f"{b['search_complete']} / {n['search_complete']} |")
+    print(f"\nwall time {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
