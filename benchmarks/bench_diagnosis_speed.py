@@ -4,7 +4,7 @@ Cases: the four real datasets as `calib convert-dataset` writes them (70/30 spli
 on the 70 %, its extended model is judged on the 30 % it never saw) and the independent world (spray7, mass data
 15 % off, one drawn cause at 5x the noise) at 150 and 2000 poses. Each case runs in its own process, one BLAS
 thread, with PYTHONPATH set to the revision's tree (a `git worktree` made once under /tmp), so both revisions see
-the same machine at the same time. Per case: wall time and its ratio, the findings (kind and joints) and the
+the same machine at the same time (a committed revision's results are cached in /tmp/calib-bench-cache). Per case: wall time and its ratio, the findings (kind and joints) and the
 held-out RMS on the 30 % (or on 100 fresh world poses), with their relative difference.
 
 Run: .venv/bin/python -m benchmarks.bench_diagnosis_speed [--base REV] [--cases motoman iiwa justin hilti w150 w2000]
@@ -89,7 +89,24 @@ def tree_of(rev: str) -> Path:
     return path
 
 
+CACHE = Path("/tmp/calib-bench-cache")
+"""A committed revision's result per case is kept here (its code does not change): a second run measures only
+the other side. The working tree (HEAD+) is never cached."""
+
+
 def run(case: str, tree: Path, root: str) -> dict:
+    sha = None if tree == ROOT else tree.name.rsplit("-", 1)[-1]
+    hit = CACHE / f"{sha}-{case}.json"
+    if sha and hit.exists():
+        return json.loads(hit.read_text())
+    out = _run(case, tree, root)
+    if sha and "error" not in out:
+        CACHE.mkdir(exist_ok=True)
+        hit.write_text(json.dumps(out))
+    return out
+
+
+def _run(case: str, tree: Path, root: str) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
                MKL_NUM_THREADS="1", CALIB_SHARED_DATASETS=root)
     r = subprocess.run([sys.executable, "-c", CHILD, case, root], cwd=tree, env=env, capture_output=True, text=True)
