@@ -214,6 +214,8 @@ def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, 
     for k, f in enumerate(findings, 1):
         odd = ", not a physical size" if f.get("physical") is False else ""
         name = cause_name(f)
+        if f.get("significant") is False and f["kind"] != "correction":
+            name += " (confirmed when found; no size in the final model: the causes after it explain it)"
         if f["kind"] == "correction":
             odd = f", follows {f.get('follows')}"
             name = (f"a correction that follows {follows_what(f)} (not a physical cause: "

@@ -26,8 +26,8 @@ fitter's _Fitter for type checking only):
     search          the greedy search (_Search) and diagnose()
 """
 from .evidence import holdout_gain, holdout_ms
-from .findings import (PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, SIGNIFICANT_STD, follows_what, named_joints,
-                       present_findings)
+from .findings import (PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, SIGNIFICANT_STD, follows_what, is_named,
+                       named_joints, present_findings)
 from .lookalikes import INDISTINGUISHABLE
 from .noise import noise_floor_mm
 from .result import Diagnosis, explain
@@ -36,5 +36,5 @@ from .search import ALPHA, NAMED_SHARE, diagnose
 from .time_structure import runs_probability
 
 __all__ = ["ALPHA", "INDISTINGUISHABLE", "NAMED_SHARE", "PLAUSIBLE_TRAVEL_MM", "PLAUSIBLE_TURN_RAD", "SIGNIFICANT_STD",
-           "Diagnosis", "diagnose", "explain", "follows_what", "holdout_gain", "holdout_ms", "named_joints",
+           "Diagnosis", "diagnose", "explain", "follows_what", "is_named", "holdout_gain", "holdout_ms", "named_joints",
            "noise_floor_mm", "present_findings", "runs_probability", "screen"]

@@ -143,6 +143,13 @@ def follows_what(f: dict) -> str:
     return FOLLOWS.get(kind, kind.replace("_", " ") + (" on {j}" if j else "")).format(j=j or "the robot")
 
 
+def is_named(f: dict) -> bool:
+    """A finding the answer names as a physical cause: not `unexplained`, not a correction (no physical size), and
+    with a size the final model shows (`significant` not false)."""
+    return f.get("kind") not in ("unexplained", "correction") and f.get("physical") is not False \
+        and f.get("significant") is not False
+
+
 def named_joints(f: dict) -> tuple[list[str], str]:
     """The joints a finding is named for, and a remark on the others: its `significant_joints` where some of its
     joints carry no share beyond SIGNIFICANT_STD std (compliance on two joints is not named as that of five)."""
@@ -175,6 +182,13 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
         if f.get("kind") in ("unexplained", "correction") or not f.get("parameters"):
             continue
         params = f["parameters"] = [{**p, **table.get(p["name"], {})} for p in f["parameters"]]
+        sized = all(p.get("std") is not None and np.isfinite(p["std"]) and p["std"] > 0 for p in params)
+        if params and sized and not any(abs(_beyond(p)) > SIGNIFICANT_STD for p in params):
+            # what it explained when it was found, the causes found after it explain: no size the final model shows
+            f["significant"] = False
+            f["evidence"] += (f"; in the final model none of its parameters is beyond {SIGNIFICANT_STD:g} std of "
+                              f"zero: the causes found after it explain what it explained, so it is not named as a "
+                              f"cause of its own (the model keeps it; its size there is not known)")
         f["evidence"] += "; in the final model " + ", ".join(
             f"{p['name']} = {p['value']:.4g} +/- {'(undetermined)' if p['std'] is None else format(p['std'], '.2g')}"
             f"{' ' + p['unit'] if p.get('unit') not in (None, '', '1') else ''}" for p in params[:4])

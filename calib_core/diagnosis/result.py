@@ -9,7 +9,7 @@ import numpy as np
 from ..identify import Calibration
 from ..model import RobotModel
 from .evidence import model_error_mm
-from .findings import follows_what, named_joints
+from .findings import follows_what, is_named, named_joints
 
 
 @dataclass
@@ -47,10 +47,13 @@ class Diagnosis:
                     f"answer" + ("; structure left" if len(self.findings) > n else ""))
         if self.findings:
             kinds = [f["kind"] for f in self.findings]
-            named = sum(k not in ("unexplained", "correction") for k in kinds)
+            named = sum(is_named(f) for f in self.findings)
             parts = (["causes found"] if named else [])
             if "correction" in kinds:  # a form whose size no real joint has: it corrects, it does not name
                 parts.append(f"{kinds.count('correction')} correction(s) of no physical size")
+            faded = sum(f.get("significant") is False and f["kind"] != "correction" for f in self.findings)
+            if faded:  # confirmed when found, no size in the final model: later causes explain it
+                parts.append(f"{faded} cause(s) the later ones explain (no size in the final model)")
             if "unexplained" in kinds:
                 parts.append("structure left that no named cause explains")
             return "; ".join(parts) if named else "no physical cause named: " + "; ".join(parts)
@@ -114,7 +117,8 @@ def explain(d: Diagnosis, model: RobotModel) -> str:
     for f in d.findings:
         joints, others = named_joints(f)
         who = (f" on {', '.join(joints)}" if joints else "") + (f" ({others})" if others else "")
-        odd = ", a size no real joint has: a correction, not the cause" if f.get("physical") is False else ""
+        odd = ", a size no real joint has: a correction, not the cause" if f.get("physical") is False else (
+            "; no size in the final model: the causes after it explain it" if f.get("significant") is False else "")
         name = f"{f['kind'].replace('_', ' ')}{who}"
         if f["kind"] == "correction":
             odd = f"; not a physical cause: {f.get('bound', 'its size is not physical')}"

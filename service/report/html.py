@@ -13,7 +13,7 @@ from datetime import datetime, timezone
 from html import escape
 from typing import Callable
 
-from calib_core.diagnosis import follows_what, named_joints
+from calib_core.diagnosis import follows_what, is_named, named_joints
 
 from .figures import (accuracy, counted_word, finding_title, joint_size, mm, model_label,
                       num, observability, pct, plot_list, show_unit, shown, sig, std_str)
@@ -246,8 +246,9 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
       (f'<a href="../{_e(cid)}">JSON</a>' if png is None else "") + "</nav>")
 
     # --- the verdict, three lines
-    named = [f for f in findings if f.get("kind") != "unexplained" and f.get("physical") is not False]
-    corrections = [f for f in findings if f not in named]
+    named = [f for f in findings if is_named(f)]
+    faded = [f for f in findings if f.get("kind") != "correction" and f.get("significant") is False]
+    corrections = [f for f in findings if f not in named and f not in faded]
     w('<div class="verdict" id="verdict">')
     if geo is not None and head.get("geometric_rms_mm") is not None:
         w(f'<p><b>Accuracy:</b> the calibrated robot is off by <b>{mm(head.get("final_rms_mm"))} mm RMS</b> at the tool '
@@ -260,8 +261,9 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
     if not d:
         w("<p><b>Causes:</b> not looked for (a <code>geometric</code> calibration: run the <code>auto</code> model "
           "to have the residual diagnosed).</p>")
-    elif named or corrections:
-        parts = [finding_title(f) for f in named] + [f"a correction ({finding_title(f)})" for f in corrections]
+    elif named or corrections or faded:
+        parts = [finding_title(f) for f in named] + [f"a correction ({finding_title(f)})" for f in corrections] + [
+            f"{finding_title(f)}, explained by the causes after it" for f in faded]
         w(f'<p><b>Cause{"s" if len(parts) > 1 else ""}{" so far" if cut else ""}:</b> {_e("; ".join(parts))}'
           f'{" (the search stopped at its time budget)" if cut else ""}.</p>')
     else:
@@ -331,6 +333,9 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
                 elif f.get("physical") is False:
                     title = (f"A correction following {j} (fitted as {kind.replace('_', ' ')}; its size is not "
                              f"physical, so it is not named as that cause).")
+                elif f.get("significant") is False:
+                    title = title[:-1] + (" — confirmed when it was found, but in the final model its size is within "
+                                          "2 std of zero: the causes after it explain it.")
                 sizes, weak, moved = _cause_sizes(f, table)
                 bits = [f"<b>{_e(title)}</b>"]
                 if f.get("physical") is not False and sizes:
@@ -517,7 +522,7 @@ def _next_steps(answer: dict, findings: list[dict], cid: str) -> list[str]:
     out = []
     if d.get("search_complete") is False:
         out.append("Run the diagnosis again with a longer time budget: causes not reached were never tested.")
-    alts = [f for f in findings if f.get("indistinguishable_from")]
+    alts = [f for f in findings if f.get("indistinguishable_from") and f.get("significant") is not False]
     for f in alts:
         # the plan service is suggested only for pairs it can rebuild (`plannable`, as the demo asks it)
         for plannable in (True, False):
@@ -541,6 +546,8 @@ def _next_steps(answer: dict, findings: list[dict], cid: str) -> list[str]:
         elif f.get("physical") is False:
             out.append(f"Read {_e(finding_title(f))} as a correction, not as a property of the joint: do not use its "
                        f"values for maintenance.")
+        elif f.get("significant") is False:  # no size in the final model: nothing to maintain or to tell apart
+            continue
         elif f.get("kind") in NEXT:
             out.append(_e(NEXT[f["kind"]].format(j=_joints(f))))
     if m.get("outliers"):
