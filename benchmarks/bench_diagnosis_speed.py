@@ -29,9 +29,9 @@ CASES = ("motoman", "iiwa", "justin", "hilti", "w150", "w2000")
 CHILD = r'''
 import json, os, sys, time
 import numpy as np
-try:
-    from calib_core.diagnosis import diagnose
-except ImportError:
+if os.path.isdir(os.path.join(os.getcwd(), "calib_core", "diagnosis")):  # by the tree: the editable install's
+    from calib_core.diagnosis import diagnose  # finder would otherwise serve a missing subpackage from the repo
+else:
     from calib_core.diagnose import diagnose
 from calib_core import datasets as D
 from calib_core.identify import evaluate
