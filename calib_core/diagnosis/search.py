@@ -27,7 +27,7 @@ from .noise import _excess, _unmodelled_mm, noise_floor_mm
 from .plays import _identified_backlash, _play_not_outliers, _with_switch_doubt
 from .residual import _drive_field, _follows, _unexplained_finding, _with_pose_noise, field_scale
 from .result import Diagnosis, explain
-from .screening import Candidate, _thresholds, screen
+from .screening import Candidate, _thresholds, linear_holdout, screen
 from .time_structure import _flagged_in_runs, _outlier_note
 
 ALPHA = 0.01
@@ -112,6 +112,7 @@ class _Search:
             pool += plays
             thresholds = _thresholds(pool, alpha)
             ranked = sorted(ranked + screen(self.current, meas, sigma, plays, x_ref, alpha)[0], key=lambda c: c.bic)
+        held_out_drop = None  # linear_holdout at the current model, made once a candidate needs it
         significant = np.array([c.log_p <= thresholds[id(c.effect)] for c in ranked], bool)
         untested = np.cumsum(significant[::-1])[::-1]  # significant candidates from each rank on
         for k, c in enumerate(ranked):
@@ -125,6 +126,13 @@ class _Search:
                 self.rejected.append({**who, "why": f"explains {100 * c.beyond_chance:.0f} % of the residual beyond "
                                                     f"chance where a smooth field explains {100 * field_share:.0f} %: "
                                                     f"part of a broader structure"})
+                continue
+            if held_out_drop is None and fit.folds > 1:
+                held_out_drop = linear_holdout(self.current, meas, sigma, x_ref, fit.folds)
+            if held_out_drop is not None and held_out_drop(c.effect) <= 0.0:
+                self.rejected.append({**who, "why": f"significant in the fit ({_p(c.p_value)}), but held-out poses "
+                                                    f"do not confirm it (at the current model's linearisation its "
+                                                    f"k-fold held-out error does not drop)"})
                 continue
             say(f"{c.effect.label(model)} on held-out poses")
             mine = [i for i, e in enumerate(self.chosen) if not _subsumed(e, c.effect)]  # a spread form replaces
