@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session
 
 from calib_core.identify import DISTINCT_DECIMALS
 from calib_core.io import MeasurementError, Measurements, parse_measurements
+from calib_core.units_check import unit_problems
 
 from ..db import Database
 from ..problems import MAX_ERRORS, ProblemError, get_or_404
@@ -62,6 +63,13 @@ def _too_few(n_poses: int, distinct: int) -> ProblemError:
                                             "different ones"}])
 
 
+def _wrong_units(errors: list[dict]) -> ProblemError:
+    cols = list(dict.fromkeys(str(e["column"]) for e in errors))
+    return ProblemError(422, f"the CSV's {', '.join(cols)} cannot be in the model's units (see each error for the "
+                        "likely unit and what to do); nothing was stored", kind="invalid-csv", errors=errors,
+                        error_count=len(errors), total_errors=len(errors))
+
+
 def parse_or_reject(raw: bytes, model, instrument: str | None = None, limits: str = "reject") -> Measurements:
     try:
         meas = parse_measurements(raw, model, instrument=instrument, limits=limits)
@@ -78,7 +86,8 @@ def parse_or_reject(raw: bytes, model, instrument: str | None = None, limits: st
 
 def check_upload(raw: bytes, model, instrument: str | None = None, limits: str = "reject") -> dict:
     """What an upload needs of its CSV, as plain data (it crosses a process boundary): {"n_poses",
-    "out_of_limits", "columns"}, or {"problem": (kind, args)} for the 422 parse_or_reject would raise."""
+    "out_of_limits", "columns"}, or {"problem": (kind, args)} for the 422 parse_or_reject would raise, or the
+    422 of calib_core.units_check (points or joint columns that look written in another unit than the model's)."""
     try:
         meas = parse_measurements(raw, model, instrument=instrument, limits=limits)
     except MeasurementError as exc:
@@ -88,10 +97,17 @@ def check_upload(raw: bytes, model, instrument: str | None = None, limits: str =
     distinct = len(np.unique(np.round(meas.joints, DISTINCT_DECIMALS), axis=0))
     if distinct < MIN_POSES:
         return {"problem": ("too_few", (meas.n_poses, distinct))}
+    try:  # issue 33: points or joint columns in another unit than the model's, named before anything is stored
+        wrong = unit_problems(model, meas)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):  # a check that cannot judge says nothing
+        log.warning("the units check failed; the upload is judged without it", exc_info=True)
+        wrong = []
+    if wrong:
+        return {"problem": ("units", (wrong,))}
     return {"n_poses": meas.n_poses, "out_of_limits": meas.out_of_limits, "columns": _header(raw)}
 
 
-_PROBLEMS = {"invalid": _invalid, "unreadable": _unreadable, "too_few": _too_few}
+_PROBLEMS = {"invalid": _invalid, "unreadable": _unreadable, "too_few": _too_few, "units": _wrong_units}
 
 
 class _Parsers:
