@@ -9,7 +9,7 @@ from pathlib import Path
 
 import anyio
 import anyio.to_thread
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
@@ -111,7 +111,8 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
             app.state.db.dispose()
 
     app = FastAPI(title="calib", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
-                  docs_url=None, redoc_url=None)  # served below from local assets
+                  docs_url=None, redoc_url=None,  # served below from local assets
+                  dependencies=[Depends(problems.no_lone_surrogates)])  # issue 33: 422, never a 500 after storing
     app.state.settings = settings
     app.state.db = Database(settings.database_url)
     app.state.dispatcher = None

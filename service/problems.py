@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from http import HTTPStatus
 from typing import Any
 
@@ -101,6 +102,37 @@ def json_safe(v: Any, limit: int = MAX_VALUE_CHARS) -> Any:
     return _bounded(v, 0, [limit])
 
 
+def encodable(text: str) -> str:
+    """`text` as UTF-8 can carry it: a lone surrogate (which JSON's `\\ud800` escapes can put into a string)
+    written as the escape it came from (`\\ud800`), so an echo of it never breaks the answer."""
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def encodable_doc(doc: Any) -> Any:
+    """A parsed JSON document with every string (value or key) made `encodable`; the document itself when it needs
+    nothing (the usual case: one C-speed dump finds no surrogate escape). For models stored before lone surrogates
+    were refused (issue 33), so `GET /robots` can still answer them."""
+    import json
+
+    if not LONE_SURROGATE_ESCAPE.search(json.dumps(doc).encode("ascii")):
+        return doc
+
+    def fix(v: Any) -> Any:
+        if isinstance(v, str):
+            return encodable(v)
+        if isinstance(v, dict):
+            return {encodable(str(k)): fix(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [fix(x) for x in v]
+        return v
+
+    return fix(doc)
+
+
 def _bounded(v: Any, depth: int, budget: list[int]) -> Any:
     """v made JSON-safe within budget[0] characters (shared by everything inside one value)."""
     if isinstance(v, float) and not math.isfinite(v):
@@ -108,6 +140,7 @@ def _bounded(v: Any, depth: int, budget: list[int]) -> Any:
     elif isinstance(v, (bytes, bytearray)):
         v = repr(bytes(v[:64]))
     if isinstance(v, str):
+        v = encodable(v)
         room = max(budget[0], 16)
         budget[0] -= min(len(v), room)
         return v if len(v) <= room else v[:room] + f"... ({len(v)} characters)"
@@ -126,7 +159,7 @@ def _bounded(v: Any, depth: int, budget: list[int]) -> Any:
                 break
             if isinstance(v, dict):
                 k, x = item
-                key = str(k)[:64]
+                key = encodable(str(k)[:64])
                 budget[0] -= len(key)
                 out[key] = _bounded(x, depth + 1, budget)
             else:
@@ -148,7 +181,7 @@ def cap_errors(errors: list | None, total: int | None = None) -> tuple[list | No
     total = len(errors) if total is None else max(total, len(errors))
     shown = []
     for e in errors[:MAX_ERRORS]:
-        shown.append({str(k)[:64]: json_safe(x, MAX_MESSAGE_CHARS if k == "message" else MAX_VALUE_CHARS)
+        shown.append({encodable(str(k)[:64]): json_safe(x, MAX_MESSAGE_CHARS if k == "message" else MAX_VALUE_CHARS)
                       for k, x in e.items()} if isinstance(e, dict) else json_safe(e))
     return shown, {"error_count": total, "errors_truncated": total > len(shown)}
 
@@ -169,7 +202,7 @@ def problem_response(request: Request | None, status: int, detail: str | None, *
     shown, counts = cap_errors(errors, error_count)
     if shown is not None:
         body["errors"] = shown
-    body.update({str(k): json_safe(v, MAX_MESSAGE_CHARS) for k, v in extra.items()})
+    body.update({encodable(str(k)): json_safe(v, MAX_MESSAGE_CHARS) for k, v in extra.items()})
     body.update(counts)
     return JSONResponse(body, status_code=status, media_type=PROBLEM, headers=headers)
 
@@ -190,6 +223,59 @@ def _loc(loc) -> str:
         rest = parts[1:]
         return where + ("." + ".".join(rest) if rest else "")
     return ".".join(parts)
+
+
+LONE_SURROGATE_ESCAPE = re.compile(rb"\\u[dD][89a-fA-F][0-9a-fA-F]{2}")
+"""A JSON escape of a UTF-16 surrogate (`\\ud800`..`\\udfff`) in a request body: only a body with one can hold a
+string UTF-8 cannot encode (a pair makes one character; a lone one stays a surrogate)."""
+
+
+def lone_surrogates(doc: Any, path: str = "body", limit: int = MAX_ERRORS) -> list[dict]:
+    """Every string (value or key) of a parsed JSON document that holds a lone surrogate, as `{field, value,
+    message}` errors (value: the text with the surrogate written as its escape), at most `limit`."""
+    out: list[dict] = []
+    stack: list[tuple[str, Any]] = [(path, doc)]
+    while stack and len(out) < limit:
+        where, v = stack.pop()
+        if isinstance(v, str):
+            if encodable(v) is not v:
+                out.append({"field": where, "value": encodable(v), "message": _SURROGATE_MESSAGE})
+        elif isinstance(v, dict):
+            for k, x in reversed(list(v.items())):
+                key = str(k)
+                if encodable(key) is not key:
+                    out.append({"field": where, "value": encodable(key), "message": "a key: " + _SURROGATE_MESSAGE})
+                stack.append((f"{where}.{encodable(key)}", x))
+        elif isinstance(v, list):
+            stack.extend((f"{where}[{k}]", x) for k, x in reversed(list(enumerate(v))))
+    return out[:limit]
+
+
+_SURROGATE_MESSAGE = ("the text holds a lone UTF-16 surrogate (an escape \\ud800..\\udfff without its pair), which is "
+                      "no character and cannot be stored or answered as UTF-8: send the text as UTF-8, or the escape "
+                      "with its pair")
+
+
+async def no_lone_surrogates(request: Request) -> None:
+    """App-wide dependency: a JSON body with a string UTF-8 cannot encode (a lone surrogate) is a 422 naming the
+    field, before any route stores or echoes it (issue 33: a robot was stored with one and every later
+    `GET /robots` answered 500). The body FastAPI already read and parsed is reused; it is only walked when its
+    bytes hold a surrogate escape at all."""
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if request.method not in ("POST", "PUT", "PATCH") or not (ctype == "application/json" or ctype.endswith("+json")):
+        return
+    body = await request.body()
+    if not LONE_SURROGATE_ESCAPE.search(body):
+        return
+    try:
+        doc = await request.json()
+    except ValueError:
+        return  # not JSON: FastAPI's own answer
+    errors = lone_surrogates(doc)
+    if errors:
+        n = len(errors)
+        raise ProblemError(422, f"the request has {n} text{'s' * (n != 1)} that cannot be encoded as UTF-8 (a lone "
+                           "surrogate escape); nothing was stored", kind="validation", errors=errors)
 
 
 def install(app: FastAPI) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from ..measurements.models import MeasurementSet
 from ..measurements.service import get_measurement_set
 from ..problems import ProblemError, get_or_404, not_found
 from ..queue import notify, store
@@ -15,6 +16,11 @@ from .models import CANCELLED, QUEUED, RUNNING, Job
 def enqueue(s: Session, measurement_set_id: str, mode: str, max_attempts: int) -> Job:
     try:
         get_measurement_set(s, measurement_set_id)
+        # DELETE /measurements/{id} (or its robot's) may be under way: on PostgreSQL this waits for it and then
+        # finds no set (422) instead of failing on the foreign key; a delete that comes later sees this job (409)
+        locked = select(MeasurementSet.id).where(MeasurementSet.id == measurement_set_id)
+        if s.scalars(locked.with_for_update(key_share=True)).first() is None:
+            raise not_found("measurement set", measurement_set_id)
     except ProblemError:
         raise ProblemError(422, f"measurement set {measurement_set_id!r} does not exist", kind="validation",
                            errors=[{"field": "body.measurement_set_id", "value": measurement_set_id,

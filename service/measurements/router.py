@@ -74,3 +74,17 @@ def list_sets(robot_id: str, limit: int = Query(100, ge=1, le=1000), offset: int
             responses=problem_responses(404), summary="A stored measurement set's summary")
 def get_set(measurement_set_id: str, s: Session = Depends(get_read_session, scope="function")) -> MeasurementSetOut:
     return MeasurementSetOut.of(service.get_measurement_set(s, measurement_set_id))
+
+
+DELETE_DOC = """Deletes the measurement set with everything made from it: its finished jobs, the calibrations made from
+it and their plots (export what you keep first, e.g. `GET /calibrations/{id}/model`). `409` (nothing deleted) while
+a queued or running job uses it: the problem document's `jobs` lists them; cancel them (`POST /jobs/{id}/cancel`)
+or wait, then delete again. `404` when there is no such set (a second DELETE). The robot stays."""
+
+
+@router.delete("/measurements/{measurement_set_id}", status_code=204, response_class=Response,
+               dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 409),
+               summary="Delete a measurement set and everything made from it", description=DELETE_DOC)
+def delete_set(measurement_set_id: str, db: Database = Depends(get_db)) -> Response:
+    service.delete_measurement_set(db, measurement_set_id)
+    return Response(status_code=204)

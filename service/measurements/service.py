@@ -12,7 +12,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from calib_core.identify import DISTINCT_DECIMALS
@@ -20,7 +20,8 @@ from calib_core.io import MeasurementError, Measurements, parse_measurements
 from calib_core.units_check import unit_problems
 
 from ..db import Database
-from ..problems import MAX_ERRORS, ProblemError, get_or_404
+from ..problems import MAX_ERRORS, ProblemError, get_or_404, not_found
+from ..robots.models import Robot
 from ..robots.service import get_robot, model_of
 from .models import MeasurementSet
 
@@ -222,12 +223,72 @@ def create_measurement_set(db: Database, robot_id: str, raw: bytes, filename: st
                        size_bytes=len(raw), sha256=hashlib.sha256(raw).hexdigest(), raw=raw,
                        instrument=instrument, limits=limits, out_of_limits=out["out_of_limits"])
     with db.session() as s:
+        # the robot may have been deleted while the CSV was checked: 404, not a foreign-key error (on PostgreSQL
+        # the key-share lock keeps a DELETE /robots/{id} waiting until this set is stored, then it sees the set)
+        if s.scalars(select(Robot.id).where(Robot.id == robot_id).with_for_update(key_share=True)).first() is None:
+            raise not_found("robot", robot_id)
         s.add(m)
     return m
 
 
 def get_measurement_set(s: Session, ms_id: str) -> MeasurementSet:
     return get_or_404(s, MeasurementSet, ms_id, "measurement set")
+
+
+def delete_measurement_set(db: Database, ms_id: str) -> dict[str, int]:
+    """DELETE /measurements/{id}: the set, its finished jobs, the calibrations made from it and their plots, in one
+    transaction; 409 (nothing deleted) while a queued or running job uses it. What was deleted, counted."""
+    with db.session() as s:
+        get_measurement_set(s, ms_id)
+        n = delete_sets(s, MeasurementSet.id == ms_id, f"measurement set {ms_id!r}")
+    log_deleted(f"measurement set {ms_id!r}", n)
+    return n
+
+
+def delete_sets(s: Session, which, what: str, lock=None) -> dict[str, int]:
+    """Delete the measurement sets matching the condition `which` with everything made from them (jobs,
+    calibrations, plots) in the session's transaction, or a 409 naming the queued or running jobs that use them.
+
+    Locks on PostgreSQL (SQLite serialises writers anyway), in the order a finishing job takes them (its job row,
+    then the rows its calibration refers to), so neither waits on the other for ever: the jobs of the sets, then
+    `lock()` (the robot, for DELETE /robots/{id}) and the sets themselves (a job queued meanwhile holds a key-share
+    lock on its set until it commits), then the jobs again."""
+    from ..calibrations.models import Calibration
+    from ..jobs.models import QUEUED, RUNNING, Job
+    from ..report.models import CalibrationPlot
+
+    sets = select(MeasurementSet.id).where(which)
+    jobs_q = (select(Job.id, Job.status, Job.measurement_set_id).where(Job.measurement_set_id.in_(sets))
+              .order_by(Job.id).with_for_update())
+
+    def refuse_busy() -> None:
+        busy = [j for j in s.execute(jobs_q).all() if j.status in (QUEUED, RUNNING)]
+        if busy:
+            listed = ", ".join(f"{j.id} ({j.status})" for j in busy[:10]) + (" ..." if len(busy) > 10 else "")
+            raise ProblemError(409, f"{what} is used by {len(busy)} queued or running job{'s' * (len(busy) != 1)}: "
+                               f"{listed}; cancel {'them' if len(busy) > 1 else 'it'} (POST /jobs/{{id}}/cancel) "
+                               "or wait until finished, then delete again; nothing was deleted", kind="conflict",
+                               jobs=[{"id": j.id, "status": j.status, "measurement_set_id": j.measurement_set_id}
+                                     for j in busy[:MAX_ERRORS]])
+
+    refuse_busy()
+    if lock is not None:
+        lock()
+    s.execute(sets.order_by(MeasurementSet.id).with_for_update()).all()
+    refuse_busy()
+    cals = select(Calibration.id).where(Calibration.measurement_set_id.in_(sets))
+    quick = {"synchronize_session": False}
+    n = {"calibration_plots": s.execute(delete(CalibrationPlot).where(CalibrationPlot.calibration_id.in_(cals)),
+                                        execution_options=quick).rowcount,
+         "calibrations": s.execute(delete(Calibration).where(Calibration.measurement_set_id.in_(sets)),
+                                   execution_options=quick).rowcount,
+         "jobs": s.execute(delete(Job).where(Job.measurement_set_id.in_(sets)), execution_options=quick).rowcount}
+    n["measurement_sets"] = s.execute(delete(MeasurementSet).where(which), execution_options=quick).rowcount
+    return n
+
+
+def log_deleted(what: str, n: dict[str, int]) -> None:
+    log.info("deleted %s: %s", what, ", ".join(f"{v} {k}" for k, v in n.items()))
 
 
 def list_for_robot(s: Session, robot_id: str, limit: int, offset: int) -> list[MeasurementSet]:

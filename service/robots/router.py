@@ -6,7 +6,8 @@ from fastapi import APIRouter, Body, Depends, Query, Request, Response
 from starlette.routing import Match
 from sqlalchemy.orm import Session
 
-from ..deps import WriteRoute, get_read_session, get_session, require_writer
+from ..db import Database
+from ..deps import WriteRoute, get_db, get_read_session, get_session, require_writer
 from ..problems import ProblemError, problem_responses
 from . import service
 from .schemas import SPRAY7_EXAMPLE, RobotOut
@@ -130,3 +131,19 @@ def list_robots(request: Request, response: Response,
             summary="One stored robot model")
 def get_robot(robot_id: str, s: Session = Depends(get_read_session, scope="function")) -> RobotOut:
     return RobotOut.of(service.get_robot(s, robot_id))
+
+
+DELETE_DOC = """Deletes the robot with everything made from it: its measurement sets, their finished jobs, the
+calibrations made from them and their plots (the answers of `GET /calibrations/{id}`, predict, compensate and the
+reports of those calibrations are gone too: export what you keep first, e.g. `GET /calibrations/{id}/model`).
+`409` (nothing deleted) while a queued or running job uses one of its measurement sets: the problem document's
+`jobs` lists them; cancel them (`POST /jobs/{id}/cancel`) or wait, then delete again. `404` when there is no such
+robot (a second DELETE)."""
+
+
+@router.delete("/robots/{robot_id}", status_code=204, response_class=Response, dependencies=[Depends(require_writer)],
+               responses=problem_responses(401, 404, 409), summary="Delete a robot and everything made from it",
+               description=DELETE_DOC)
+def delete_robot(robot_id: str, db: Database = Depends(get_db)) -> Response:
+    service.delete_robot(db, robot_id)
+    return Response(status_code=204)

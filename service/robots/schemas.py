@@ -8,6 +8,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from calib_core.model import parse_model
 from calib_core.robots import spray7
 
+from ..problems import encodable, encodable_doc
+
 SPRAY7_EXAMPLE = spray7()
 
 
@@ -34,8 +36,9 @@ class RobotOut(BaseModel):
 
     @classmethod
     def of(cls, r) -> "RobotOut":
-        units = r.model_json.get("units") if isinstance(r.model_json.get("units"), dict) else {}
-        model = parse_model(r.model_json)
-        return cls(id=r.id, name=r.name, joint_names=r.joint_names, n_joints=len(r.joint_names), units=units,
-                   created_at=iso(r.created_at), model=r.model_json, actuated_joints=list(model.actuated_names),
-                   targets=list(model.target_names))
+        doc = encodable_doc(r.model_json)  # a model stored with a lone surrogate before they were refused: answered
+        units = doc.get("units") if isinstance(doc.get("units"), dict) else {}
+        model = parse_model(doc)
+        return cls(id=r.id, name=encodable(r.name), joint_names=encodable_doc(r.joint_names),
+                   n_joints=len(r.joint_names), units=units, created_at=iso(r.created_at), model=doc,
+                   actuated_joints=list(model.actuated_names), targets=list(model.target_names))

@@ -6,12 +6,12 @@ import logging
 import threading
 from collections import OrderedDict
 
-from sqlalchemy import func, select
+from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
 from calib_core.model import ModelError, RobotModel, parse_model
 
-from ..problems import ProblemError, get_or_404
+from ..problems import ProblemError, get_or_404, not_found
 from .models import Robot
 
 log = logging.getLogger("service")
@@ -65,6 +65,28 @@ def create_robot_from_urdf(s: Session, body: bytes, base: str | None, targets: s
 
 def get_robot(s: Session, robot_id: str) -> Robot:
     return get_or_404(s, Robot, robot_id, "robot")
+
+
+def delete_robot(db, robot_id: str) -> dict[str, int]:
+    """DELETE /robots/{id}: the robot with its measurement sets and everything made from them (finished jobs,
+    calibrations, plots), in one transaction; 409 (nothing deleted) while a queued or running job uses one of its
+    sets. What was deleted, counted."""
+    from ..measurements.models import MeasurementSet
+    from ..measurements.service import delete_sets, log_deleted
+
+    with db.session() as s:
+        get_robot(s, robot_id)
+
+        def lock() -> None:  # no set can be added to it from here on (an upload takes a key-share lock)
+            if s.scalars(select(Robot.id).where(Robot.id == robot_id).with_for_update()).first() is None:
+                raise not_found("robot", robot_id)
+
+        n = delete_sets(s, MeasurementSet.robot_id == robot_id, f"robot {robot_id!r}", lock=lock)
+        n["robots"] = s.execute(delete(Robot).where(Robot.id == robot_id),
+                                execution_options={"synchronize_session": False}).rowcount
+    _cache.drop(str(robot_id))
+    log_deleted(f"robot {robot_id!r}", n)
+    return n
 
 
 PAGE_MAX_BYTES = 8 * 1024 * 1024
@@ -124,6 +146,12 @@ class ModelCache:
             while self.bytes > self.max_bytes:
                 _, (_, n) = self._items.popitem(last=False)
                 self.bytes -= n
+
+    def drop(self, key: str) -> None:
+        with self._lock:
+            old = self._items.pop(key, None)
+            if old is not None:
+                self.bytes -= old[1]
 
     def clear(self) -> None:
         with self._lock:
