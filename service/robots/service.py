@@ -17,10 +17,48 @@ from .models import Robot
 log = logging.getLogger("service")
 
 
+MAX_MODEL_JOINTS = 100
+"""At most this many joints (revolute and prismatic rows, coupled ones included) in a stored model (issue 33). Real
+robots have far fewer: a 6- or 7-axis arm, Agile Justin's torso and two arms 17 (+ fixed rows), a two-arm humanoid
+with two hands 60-80. Larger models are refused at `POST /robots` (JSON or URDF): a 1000-joint model used to be
+stored, and a 3-pose plan on it took 51 s and 5 GB. A serial chain's 50-pose plan (measured on one busy core):
+50 joints 3.1 s / 370 MB, 100 joints 13.5 s / 640 MB, 200 joints 53 s / 1.2 GB."""
+MAX_MODEL_ROWS = 150
+"""At most this many rows in all (joints and `fixed` rows: mount plates, URDF fixed joints on the chains), whose
+constants are parameters too."""
+MAX_MODEL_TARGETS = 64
+"""At most this many measured targets (SMRs, markers) in `targets`."""
+
+
+def check_size(doc: dict) -> None:
+    """A 422 naming each count of the model over its maximum, before the model is parsed at all (a model of a
+    million rows is refused in microseconds)."""
+    rows, targets = doc.get("joints"), doc.get("targets")
+    errors = []
+    if isinstance(rows, list):
+        joints = sum(1 for r in rows if not (isinstance(r, dict) and r.get("type") == "fixed"))
+        if len(rows) > MAX_MODEL_ROWS:
+            errors.append({"field": "joints", "value": len(rows), "message": f"the model has {len(rows)} rows; "
+                           f"at most {MAX_MODEL_ROWS} are taken (joints and fixed rows)"})
+        if joints > MAX_MODEL_JOINTS:
+            errors.append({"field": "joints", "value": joints, "message": f"the model has {joints} joints "
+                           f"(revolute and prismatic, coupled ones included); at most {MAX_MODEL_JOINTS} are taken"})
+    if isinstance(targets, list) and len(targets) > MAX_MODEL_TARGETS:
+        errors.append({"field": "targets", "value": len(targets), "message": f"the model has {len(targets)} "
+                       f"targets; at most {MAX_MODEL_TARGETS} are taken"})
+    if errors:
+        raise ProblemError(422, f"the robot model is larger than this service takes ({MAX_MODEL_JOINTS} joints, "
+                           f"{MAX_MODEL_ROWS} rows, {MAX_MODEL_TARGETS} targets; a two-arm humanoid with hands has "
+                           "60-80 joints): model only the chains that are measured (a URDF upload's `base` and "
+                           "`targets` choose them); nothing was stored", kind="invalid-model", errors=errors,
+                           max_joints=MAX_MODEL_JOINTS, max_rows=MAX_MODEL_ROWS, max_targets=MAX_MODEL_TARGETS)
+
+
 def validate_model(doc) -> RobotModel:
     if not isinstance(doc, dict):
         raise ProblemError(422, "the robot model must be a JSON object", kind="invalid-model",
                            errors=[{"field": "", "value": type(doc).__name__, "message": "must be a JSON object"}])
+    check_size(doc)
     try:
         return parse_model(doc)
     except ModelError as exc:
