@@ -47,9 +47,15 @@ MIN_SPAN_MM = 20.0
 than this (mm)."""
 LIMIT_SLACK = 0.1
 """A column read in its other unit must lie within the joint's limits widened by this share of their span."""
-MAX_CHECK_ROWS = 2000
+MAX_CHECK_ROWS = 1000
 """At most this many rows (evenly spaced) take part: the verdict does not need more, and a 200 000-row CSV is
 judged in milliseconds, not seconds."""
+MAX_GREEDY = 4
+"""The search of joint columns in their other unit adds at most this many one at a time (more: all at once)..."""
+MAX_SEARCHED = 12
+"""... and only among at most this many suspect columns (more suspects: all at once only). With the rows capped,
+the check costs a 7-axis arm a few milliseconds and a 100-joint chain whose every column is a suspect about a
+second, not tens of seconds."""
 MIN_ROWS = 3
 """Fewer distinct points than this leave nothing to register."""
 
@@ -158,7 +164,7 @@ def _joint_search(model: RobotModel, meas: Measurements, points: np.ndarray, sus
         return r if math.isfinite(r) else math.inf
 
     chosen, r_cur = [], ratio
-    left = list(fac)
+    left = list(fac) if len(fac) <= MAX_SEARCHED else []
     while left and len(chosen) < MAX_GREEDY:
         r_new, j = min((r_of(chosen + [j]), j) for j in left)
         if not r_new <= 0.75 * r_cur:
@@ -170,15 +176,12 @@ def _joint_search(model: RobotModel, meas: Measurements, points: np.ndarray, sus
         r_all = r_of(list(fac))
         if r_all < r_cur:
             chosen, r_cur = list(fac), r_all
-    for j in list(chosen):
+    for j in list(chosen) if len(chosen) <= MAX_SEARCHED else []:
         rest = [k for k in chosen if k != j]
         if r_of(rest) <= 1.1 * r_cur + 1e-12:
             chosen = rest
     return chosen, (r_of(chosen) if chosen else ratio)
 
-
-MAX_GREEDY = 8
-"""The greedy search of joint columns in their other unit adds at most this many one by one (beyond: all at once)."""
 
 
 def unit_problems(model: RobotModel, meas: Measurements) -> list[dict]:
@@ -186,9 +189,10 @@ def unit_problems(model: RobotModel, meas: Measurements) -> list[dict]:
     in another unit than the model's; [] when the nominal model fits them as written, or no other reading fits
     clearly better (nothing can be said).
 
-    Readings tried: the points as written and in every other unit of LENGTH_UNITS_MM, each with the suspect joint
-    columns (`_suspects`) as written or in their other unit (`_joint_search`). A reading other than the data as
-    written is named when it fits within RATIO_LIMIT and BETTER times better than the data as written."""
+    Readings tried: the points as written and, when they do not fit within RATIO_LIMIT, in the other unit of
+    LENGTH_UNITS_MM that fits them best; each with the suspect joint columns (`_suspects`) as written or in their
+    other unit (`_joint_search`). A reading other than the data as written is named when it fits within RATIO_LIMIT
+    and BETTER times better than the data as written."""
     m = _sample(meas)
     if len(np.unique(np.round(m.points, 6), axis=0)) < MIN_ROWS:
         return []
@@ -196,28 +200,29 @@ def unit_problems(model: RobotModel, meas: Measurements) -> list[dict]:
     if not math.isfinite(ratio):
         return []
     ls = LENGTH_TO_MM[model.length_unit]
+    units = [(ratio, model.length_unit, 1.0)]
+    if ratio > RATIO_LIMIT:  # the points do not fit as written: the other unit they fit best in
+        # the numbers read in `unit`: internal mm = number * mm = (internal as read now) * mm / ls
+        other = [(fit_ratio(model, m, points=m.points * (mm / ls)), u, mm / ls)
+                 for u, mm in LENGTH_UNITS_MM.items() if u != model.length_unit]
+        other = [o for o in other if math.isfinite(o[0])]
+        if other:
+            units.append(min(other))
     sus = _suspects(model, m)
     readings = []  # (ratio, points unit, factor, joints read in their other unit)
-    for unit, mm in [(model.length_unit, ls)] + [(u, mm) for u, mm in LENGTH_UNITS_MM.items()
-                                                  if u != model.length_unit]:
-        f = mm / ls  # the numbers read in `unit`: internal mm = number * mm = (internal as read now) * mm / ls
-        r = ratio if f == 1.0 else fit_ratio(model, m, points=m.points * f)
-        if not math.isfinite(r):
-            continue
-        if f != 1.0 and ratio <= RATIO_LIMIT:
-            continue  # the points fit as written: their unit is the model's
+    for r, unit, f in units:
         cols, r_j = (_joint_search(model, m, m.points * f, sus, r) if sus else ([], r))
         readings.append((r_j, unit, f, cols))
-    if not readings:
-        return []
     best = min(readings, key=lambda t: t[0])
     r_best, unit, f, cols = best
     if (f == 1.0 and not cols) or not (r_best <= RATIO_LIMIT and r_best * BETTER <= ratio):
         return []
-    return _errors(model, m, ratio, best, {j: (o, h, fj) for j, fj, o, h in sus})
+    return _errors(model, m, meas, ratio, best, {j: (o, h, fj) for j, fj, o, h in sus})
 
 
-def _errors(model: RobotModel, m: Measurements, ratio: float, best, info) -> list[dict]:
+def _errors(model: RobotModel, m: Measurements, meas: Measurements, ratio: float, best, info) -> list[dict]:
+    """The errors of the reading `best`: the figures from the rows that took part (m), each column's range from
+    all of them (meas)."""
     r_best, unit, f, cols = best
     lu = model.length_unit
     ls = LENGTH_TO_MM[lu]
@@ -234,13 +239,13 @@ def _errors(model: RobotModel, m: Measurements, ratio: float, best, info) -> lis
         msg = (f"the points look like {UNIT_WORDS[unit]}: the model's length unit is {lu}. {fit}. Write x, y, z "
                f"in {lu} ({how}) and upload again; nothing was stored")
         for k, c in enumerate("xyz"):
-            v = m.points[:, k] / ls
+            v = meas.points[:, k] / ls
             errors.append({"row": None, "column": c, "value": f"{_g(float(v.min()))} .. {_g(float(v.max()))}",
                            "message": msg})
     for j in cols:
         other, here, fj = info[j]
         name = model.joint_names[j]
-        v = m.joints[:, j] / js[j]
+        v = meas.joints[:, j] / js[j]
         lo, hi = (float(b) / js[j] for b in model.limits[j])
         how = f"multiply by {_g(fj)}" if fj > 1 else f"divide by {_g(1 / fj)}"
         msg = (f"{name} looks like {UNIT_WORDS[other]}: its values span {_g(float(v.min()))} .. {_g(float(v.max()))}"
