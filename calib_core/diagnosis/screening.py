@@ -120,8 +120,9 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     Cw, _ = _weighted_columns(field, ctx, Jq, sigma)
     Cp = Cw - Q @ (Q.T @ Cw)
     ridge = np.eye(Cp.shape[1]) / field.prior_std**2
-    fit = Cp @ np.linalg.solve(Cp.T @ Cp + ridge, Cp.T @ r)
-    s2 = np.linalg.svd(Cp, compute_uv=False) ** 2
+    G = Cp.T @ Cp
+    fit = Cp @ np.linalg.solve(G + ridge, Cp.T @ r)
+    s2 = np.clip(np.linalg.eigvalsh(G), 0.0, None)  # Cp's squared singular values (no SVD of the tall Cp)
     chance = float(np.sum((s2 / (s2 + 1.0 / field.prior_std**2)) ** 2))  # E|H e|^2 / sigma^2 = trace(H^2)
     return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss - chance / (m - p)
 
