@@ -43,8 +43,26 @@ def _robust_sigma(cal: Calibration, sigma: np.ndarray) -> np.ndarray:
     return sigma / np.sqrt(np.maximum(cal.solution.weights, 1e-6))
 
 
+_SYSTEMS: list[tuple] = []
+"""The last two weighted systems made (a round asks for the current model's up to four times: the screen, the play
+search, the plays' screen, the held-out pre-check); each is an SVD of the whole Jacobian."""
+
+
 def _weighted_system(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray):
-    """Weighted residual (m,), orthonormal basis of the current model's Jacobian (m, r), and the chain."""
+    """Weighted residual (m,), orthonormal basis of the current model's Jacobian (m, r), and the chain (read-only:
+    the same arrays are handed out again for the same model, poses, weights and reference geometry)."""
+    key = (sigma.tobytes(), np.asarray(x_ref).tobytes(), cal.solution.x.tobytes(), cal.x.tobytes(),
+           tuple(map(id, cal.effects)))
+    for c, m, k, out in _SYSTEMS:
+        if c is cal and m is meas and k == key:
+            return out
+    out = _weighted_system_of(cal, meas, sigma, x_ref)
+    _SYSTEMS.append((cal, meas, key, out))
+    del _SYSTEMS[:-2]
+    return out
+
+
+def _weighted_system_of(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray):
     model = cal.model
     chain, dp = cal.robot.chain(meas.joints, meas)
     r = (meas.points - chain.p - dp) / sigma[:, None]
