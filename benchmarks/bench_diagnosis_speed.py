@@ -4,7 +4,7 @@ Cases: the four real datasets as `calib convert-dataset` writes them (70/30 spli
 on the 70 %, its extended model is judged on the 30 % it never saw) and the independent world (spray7, mass data
 15 % off, one drawn cause at 5x the noise) at 150 and 2000 poses. Each case runs in its own process, one BLAS
 thread, with PYTHONPATH set to the revision's tree (a `git worktree` made once under /tmp), so both revisions see
-the same machine at the same time (a committed revision's results are cached in /tmp/calib-bench-cache). Per case: wall time and its ratio, the findings (kind and joints) and the
+the same machine at the same time (--cache reuses a committed revision's earlier results). Per case: wall time and its ratio, the findings (kind and joints) and the
 held-out RMS on the 30 % (or on 100 fresh world poses), with their relative difference.
 
 Run: .venv/bin/python -m benchmarks.bench_diagnosis_speed [--base REV] [--cases motoman iiwa justin hilti w150 w2000]
@@ -90,12 +90,12 @@ def tree_of(rev: str) -> Path:
 
 
 CACHE = Path("/tmp/calib-bench-cache")
-"""A committed revision's result per case is kept here (its code does not change): a second run measures only
-the other side. The working tree (HEAD+) is never cached."""
+"""With --cache, a committed revision's result per case is kept here and reused (its code does not change); off by
+default, since the two sides are then no longer measured under the same load. The working tree is never cached."""
 
 
-def run(case: str, tree: Path, root: str) -> dict:
-    sha = None if tree == ROOT else tree.name.rsplit("-", 1)[-1]
+def run(case: str, tree: Path, root: str, cache: bool = False) -> dict:
+    sha = None if tree == ROOT or not cache else tree.name.rsplit("-", 1)[-1]
     hit = CACHE / f"{sha}-{case}.json"
     if sha and hit.exists():
         return json.loads(hit.read_text())
@@ -121,13 +121,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--new", default="HEAD+", help="this code: HEAD+ (the working tree, default) or a revision")
     p.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
     p.add_argument("--jobs", type=int, default=2, help="cases run at once (processes)")
+    p.add_argument("--cache", action="store_true", help=f"reuse committed revisions' results from {CACHE}")
     p.add_argument("--root", default=os.environ.get("CALIB_SHARED_DATASETS", str(ROOT.parent / "shared" / "datasets")))
     args = p.parse_args(argv)
     base, new = tree_of(args.base), tree_of(args.new)
     t0 = time.perf_counter()
     tasks = [(c, which, tree) for c in args.cases for which, tree in (("base", base), ("new", new))]
     with ThreadPoolExecutor(args.jobs) as pool:  # each task is its own process; threads only wait
-        done = list(pool.map(lambda t: (t[0], t[1], run(t[0], t[2], args.root)), tasks))
+        done = list(pool.map(lambda t: (t[0], t[1], run(t[0], t[2], args.root, args.cache)), tasks))
     out: dict = {}
     for case, which, res in done:
         out.setdefault(case, {})[which] = res
