@@ -29,6 +29,7 @@ from .limits import (MAX_PREDICT_BYTES, MAX_PREDICT_ROWS, BatchLimitMiddleware, 
                      InternalErrorMiddleware)
 from .measurements.router import router as measurements_router
 from .measurements.service import PARSERS
+from .plans.pool import PLANNERS
 from .plans.router import router as plans_router
 from .robots.router import router as robots_router
 
@@ -90,6 +91,9 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
         if settings.parse_processes > 0:  # the CSV parse processes (service/measurements), warm before serving,
             # started alongside the job processes
             parsers = asyncio.ensure_future(asyncio.to_thread(PARSERS.warm, settings.parse_processes))
+        planners = None
+        if settings.plan_processes > 0:  # the plan processes (service/plans/pool.py), likewise
+            planners = asyncio.ensure_future(asyncio.to_thread(PLANNERS.warm, settings.plan_processes))
         d = None
         if run_dispatcher:
             from .queue.worker import Dispatcher
@@ -101,6 +105,8 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
                                 settings.warmup_timeout_s)
         if parsers is not None:
             await parsers
+        if planners is not None:
+            await planners
         app.state.dispatcher = d
         try:
             yield
@@ -108,6 +114,7 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
             if d is not None:
                 d.stop()
             PARSERS.shutdown()
+            PLANNERS.shutdown()
             app.state.db.dispose()
 
     app = FastAPI(title="calib", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,

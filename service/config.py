@@ -35,6 +35,8 @@ class Settings:
     route_threads: int = 8  # CALIB_ROUTE_THREADS: the API's sync routes run at most this many at once (see app.py)
     switch_interval_ms: float = 1.0  # CALIB_SWITCH_INTERVAL_MS: the API process's GIL switch interval (see app.py)
     parse_processes: int = 1  # CALIB_PARSE_PROCESSES: uploads' CSVs are checked in this many processes (0: in the API)
+    plan_processes: int = 1  # CALIB_PLAN_PROCESSES: plans run in this many processes, as many more wait (0: in the API)
+    plan_timeout_s: float = 60.0  # CALIB_PLAN_TIMEOUT_S: a plan running longer is stopped (503), its process replaced
     extra: dict = field(default_factory=dict)
 
     @classmethod
@@ -61,6 +63,8 @@ class Settings:
             route_threads=max(1, _int("CALIB_ROUTE_THREADS", 8)),
             switch_interval_ms=min(100.0, max(0.1, _float("CALIB_SWITCH_INTERVAL_MS", 1.0))),
             parse_processes=max(0, _int("CALIB_PARSE_PROCESSES", 1)),
+            plan_processes=max(0, _int("CALIB_PLAN_PROCESSES", 1)),
+            plan_timeout_s=max(0.1, _float("CALIB_PLAN_TIMEOUT_S", 60.0)),
         )
 
     @property

@@ -1,12 +1,14 @@
 """Pose planning: which poses to measure, from a stored robot (and measurement set), with calib_core.plan.
 
 The database is read in one short transaction (robot, measurement set, its latest calibration), then the plan is
-computed outside it: a diagnosis plan refits the rival models and takes a few seconds.
+computed outside it, in a plan process of its own (pool.py: bounded in number and time, 503 when busy): a diagnosis
+plan refits the rival models and takes a few seconds.
 """
 from __future__ import annotations
 
 import csv
 import io
+from typing import NamedTuple
 
 import numpy as np
 from sqlalchemy import select
@@ -23,6 +25,7 @@ from ..measurements.models import MeasurementSet
 from ..measurements.service import parse_or_reject
 from ..problems import ProblemError
 from ..robots.service import get_robot, model_of
+from .pool import PLANNERS
 from .schemas import PlanIn
 
 AUTO_JOB = 'POST /jobs {"measurement_set_id": "%s", "model": "auto"}'
@@ -41,8 +44,15 @@ def _latest_calibration(s, ms_id: str, with_diagnosis: bool) -> Calibration | No
     return None
 
 
-def _load(db: Database, robot_id: str, body: PlanIn) -> tuple[RobotModel, Measurements | None, Calibration | None]:
-    """The robot's model, the measurement set (parsed as its jobs parse it) and the calibration the plan starts
+class _Cal(NamedTuple):
+    """What a plan uses of a stored calibration, as plain data (it crosses to a plan process)."""
+    id: str
+    result: dict
+    robot_state: dict
+
+
+def _load(db: Database, robot_id: str, body: PlanIn) -> tuple[RobotModel, tuple | None, _Cal | None]:
+    """The robot's model, the measurement set's (raw, instrument, limits) and the calibration the plan starts
     from: for `diagnosis` the newest `auto` one, else the newest of any kind (for the tracker's position)."""
     with db.read_session() as s:
         model = model_of(get_robot(s, robot_id))
@@ -58,11 +68,12 @@ def _load(db: Database, robot_id: str, body: PlanIn) -> tuple[RobotModel, Measur
         if ms.robot_id != robot_id:
             raise _invalid("body.measurement_set_id", ms_id, f"this measurement set belongs to robot {ms.robot_id!r}")
         raw, instrument, limits = ms.raw, ms.instrument, ms.limits or "reject"
-        cal = _latest_calibration(s, ms_id, body.purpose == "diagnosis")  # its columns stay loaded once closed
+        c = _latest_calibration(s, ms_id, body.purpose == "diagnosis")
+        cal = None if c is None else _Cal(c.id, c.result, c.robot_state)
     if body.purpose == "diagnosis" and cal is None:
         raise _invalid("body.measurement_set_id", ms_id, "this measurement set has no `auto` calibration yet: run "
                        f"{AUTO_JOB % ms_id} and plan once it has succeeded")
-    return model, parse_or_reject(raw, model, instrument, limits), cal
+    return model, (raw, instrument, limits), cal
 
 
 def _tracker_mm(model: RobotModel, body: PlanIn, meas: Measurements | None, robot: CalibratedRobot | None):
@@ -81,7 +92,7 @@ def _tracker_mm(model: RobotModel, body: PlanIn, meas: Measurements | None, robo
     return None
 
 
-def _rivals(model: RobotModel, meas: Measurements, cal: Calibration, robot: CalibratedRobot, ms_id: str) -> list:
+def _rivals(model: RobotModel, meas: Measurements, cal: _Cal, robot: CalibratedRobot, ms_id: str) -> list:
     findings = cal.result["diagnosis"].get("findings") or []
     pairs = lookalike_pairs(model, meas, robot.effects, findings)
     if not pairs:
@@ -93,9 +104,23 @@ def _rivals(model: RobotModel, meas: Measurements, cal: Calibration, robot: Cali
     return pairs
 
 
-def make_plan(db: Database, robot_id: str, body: PlanIn) -> dict:
-    """The plan answer (contract section 5): poses in model units, actuated joint order, and their observability."""
-    model, meas, cal = _load(db, robot_id, body)
+def make_plan(db: Database, robot_id: str, body: PlanIn, processes: int = 0, timeout_s: float = 60.0) -> dict:
+    """The plan answer (contract section 5): poses in model units, actuated joint order, and their observability.
+    The database is read here; the plan is computed in a plan process (processes > 0, bounded in number and
+    timeout_s, see pool.py) or here (0)."""
+    model, stored, cal = _load(db, robot_id, body)
+    if processes > 0:
+        PLANNERS.configure(processes)
+        return PLANNERS.run(compute, (model, stored, cal, body), timeout_s)
+    return compute(model, stored, cal, body)
+
+
+def compute(model: RobotModel, stored: tuple | None, cal: _Cal | None, body: PlanIn) -> dict:
+    """The plan from what _load read: the set parsed as its jobs parse it, the calibration restored, then plan()."""
+    meas = None
+    if stored is not None:
+        raw, instrument, limits = stored
+        meas = parse_or_reject(raw, model, instrument, limits)
     robot = None if cal is None else restored(model, cal)
     rivals = _rivals(model, meas, cal, robot, body.measurement_set_id) if body.purpose == "diagnosis" else ()
     tracker = _tracker_mm(model, body, meas, robot)
