@@ -85,7 +85,8 @@ def figures_chain(a: dict) -> None:
     d, table = a["diagnosis"], {p["name"]: p for p in a["parameters"]}
     at = d["geometric"]["holdout_rms_mm"]
     for f in d["findings"]:
-        assert f["holdout_rms_before_mm"] == at, (f["kind"], f["holdout_rms_before_mm"], at)
+        # the same model may be refitted between two steps (to 1e-11 mm: Agile Justin with nothing named)
+        assert f["holdout_rms_before_mm"] == pytest.approx(at, rel=1e-9), (f["kind"], f["holdout_rms_before_mm"], at)
         at = f["holdout_rms_after_mm"]
         for p in f["parameters"]:
             assert (p["value"], p["std"]) == (table[p["name"]]["value"], table[p["name"]]["std"]), p
@@ -93,25 +94,35 @@ def figures_chain(a: dict) -> None:
 
 def headline_and_table_quote_the_accuracy_table(a: dict, html: str, text: str) -> None:
     acc = a["accuracy"]
-    head, (geo, fin) = acc["headline"], acc["models"]
+    head, models = acc["headline"], acc["models"]
+    geo, fin = models[0], models[-1]  # one row when nothing was found: the geometric model is the final one
     n = a["metrics"]["n_poses"]
     # the answer's accuracy defines each figure once, with the poses it counts
     assert head["poses"] == n == geo["holdout_all"]["n"] == fin["holdout_all"]["n"]
     m = a["metrics"]  # the figures with outliers are given apart only where the model names some
     assert head["final_rms_mm"] == fin["holdout_all"]["rms_mm"] == m.get("holdout_rms_with_outliers_mm",
                                                                          m["holdout_rms_mm"])
-    assert head["geometric_rms_mm"] == geo["holdout_all"]["rms_mm"]
     assert fin["holdout"]["rms_mm"] == a["metrics"]["holdout_rms_mm"]
-    assert geo["holdout"]["rms_mm"] == a["diagnosis"]["geometric"]["holdout_rms_mm"]
-    assert geo["holdout"]["n"] + geo["holdout"]["outliers_left_out"] == n
     assert fin["holdout"]["outliers_left_out"] == len(a["metrics"]["outliers"])  # two values: both labelled
-    assert head["gain_pct"] == pytest.approx(100 * (1 - head["final_rms_mm"] / head["geometric_rms_mm"]), rel=1e-12)
+    if len(models) > 1:  # a geometric row beside the final one
+        assert head["geometric_rms_mm"] == geo["holdout_all"]["rms_mm"]
+        assert geo["holdout"]["rms_mm"] == a["diagnosis"]["geometric"]["holdout_rms_mm"]
+        assert geo["holdout"]["n"] + geo["holdout"]["outliers_left_out"] == n
+        assert head["gain_pct"] == pytest.approx(100 * (1 - head["final_rms_mm"] / head["geometric_rms_mm"]),
+                                                 rel=1e-12)
 
-    v = re.search(rf"Accuracy: the calibrated robot is off by ({NUM}) mm RMS at the tool on poses the model did not "
-                  rf"fit, against ({NUM}) mm with the geometric model alone: ({NUM}) % less \(held out, all (\d+) "
-                  rf"calibration poses counted\)", text)
-    assert v, text[:1500]
-    assert v.groups() == (mm(head["final_rms_mm"]), mm(head["geometric_rms_mm"]), f"{head['gain_pct']:.1f}", str(n))
+    if len(models) == 1:  # nothing found: the geometric model is the answer, no "against" clause
+        v = re.search(rf"Accuracy: the calibrated robot is off by ({NUM}) mm RMS at the tool on poses the model did "
+                      rf"not fit(?:, against {NUM} mm with the geometric model alone: {NUM} % less)? \(held out, all "
+                      rf"(\d+) calibration poses counted\)", text)
+        assert v and v.groups() == (mm(head["final_rms_mm"]), str(n)), text[:1500]
+    else:
+        v = re.search(rf"Accuracy: the calibrated robot is off by ({NUM}) mm RMS at the tool on poses the model did "
+                      rf"not fit, against ({NUM}) mm with the geometric model alone: ({NUM}) % less \(held out, all "
+                      rf"(\d+) calibration poses counted\)", text)
+        assert v, text[:1500]
+        assert v.groups() == (mm(head["final_rms_mm"]), mm(head["geometric_rms_mm"]), f"{head['gain_pct']:.1f}",
+                              str(n))
 
     word = re.search(r'<th class="n">(\w+) counted</th>', html).group(1)
     table = html[html.index('id="accuracy"'):html.index('id="causes"')]
