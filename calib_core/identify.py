@@ -22,7 +22,8 @@ from scipy.optimize import brentq
 from . import kinematics as K
 from .effects import (Backlash, Context, CyclicJointError, Effect, JointCompliance, JointScale, LoadCompliance, apply,
                       effect_from_state, effect_state)
-from .identifiability import Identifiability, analyse, assess  # noqa: F401 (analyse: public re-export)
+from .identifiability import Identifiability, analyse, assess  # noqa: F401 (re-exported: select.py, benchmarks)
+from .reuse import prepared, start_at
 from .io import DISTINCT_DECIMALS, Measurements
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, MDH, RobotModel
 from .solve import Solution, least_squares, lm_steps, solve_together
@@ -577,7 +578,7 @@ def identify(
         raise ValueError(f"{what}: a calibration needs at least {n_min} different poses (better: dozens spread "
                          "over every joint's range); measure more poses")
     sigma = meas.noise_sigma_mm()
-    x0, R0, names, ident = _prepared(model, meas, sigma)
+    x0, R0, names, ident = prepared(model, meas, sigma, prealign, measured_targets)
     idx = _select(names, ident, free)
     n_eff = sum(len(e.parameter_names(model)) for e in effects)
     if 3 * meas.n_poses <= len(idx) + n_eff:
@@ -585,52 +586,7 @@ def identify(
                          "parameters; measure more poses")
     return _calibrate(model, meas, sigma, x0, R0, ident, idx, effects=effects, loss=loss, regularize=regularize,
                       folds=folds, x_ref=x_ref, prior_scale=prior_scale, refold=refold, pose_noise=pose_noise,
-                      start=_start_at(start, model, x0, idx, effects))[0]
-
-
-_PREPARED: list[tuple] = []
-PREPARED_SIZE = 4
-"""Pose sets whose pre-alignment and identifiability analysis identify() keeps (the most recent last)."""
-
-
-def _prepared(model: RobotModel, meas: Measurements, sigma: np.ndarray) -> tuple:
-    """identify()'s work that depends only on the model and the poses, not on the effects or options: the rigid
-    pre-alignment (x0, R0), the parameter names and the identifiability analysis (at the targets placed from the
-    data). A diagnosis identifies one pose set hundreds of times (the analysis cost Agile Justin 97 s of 990), so
-    the last PREPARED_SIZE are kept, keyed by the objects themselves (held, so their ids stay theirs) and checked
-    against their arrays' contents. x0 is returned as a copy (callers may write into it)."""
-    key = (meas.points.tobytes(), meas.joints.tobytes(), sigma.tobytes())
-    for k, (m, ms, kk, out) in enumerate(_PREPARED):
-        if m is model and ms is meas and kk == key:
-            _PREPARED.append(_PREPARED.pop(k))
-            x0, *rest = out
-            return (x0.copy(), *rest)
-    x0, R0 = prealign(model, meas)
-    names = K.parameter_names(model, meas.setup_names)
-    x_at, judged = measured_targets(model, meas, sigma, x0, R0)
-    J = K.Chain(model, x_at, meas.joints, R0, meas.labels).jacobian().reshape(-1, len(x0))
-    ident = assess(judged, meas.joints, J, names, meas.setup_names)
-    _PREPARED.append((model, meas, key, (x0.copy(), R0, names, ident)))
-    del _PREPARED[:-PREPARED_SIZE]
-    return x0, R0, names, ident
-
-
-def _start_at(cal: Calibration | None, model: RobotModel, x0: np.ndarray, idx: np.ndarray,
-              effects: tuple[Effect, ...]) -> np.ndarray | None:
-    """LM's start [x[idx], effect parameters] from a calibration of the same model and parameter layout that holds
-    only effects among `effects` (a fitted model one or more causes are added to): its geometry, its effects'
-    values, 0 for the new ones. None (nominal) otherwise: values of another form (a mass step on other mass data,
-    a play with another switch) are no start at all (one elastic tree's mass identification stalled from them)."""
-    if cal is None or cal.model is not model or len(cal.x) != len(x0):
-        return None
-    try:
-        have = {e: np.asarray(v, float) for e, v in zip(cal.effects, cal.effect_values)}
-        if not set(have) <= set(effects):
-            return None
-    except TypeError:  # an effect holding arrays: not comparable, not reused
-        return None
-    theta = [have[e] if e in have else np.zeros(len(e.parameter_names(model))) for e in effects]
-    return np.concatenate([cal.x[idx], *theta])
+                      start=start_at(start, model, x0, idx, effects))[0]
 
 
 def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None, regularize=True, folds=5,
