@@ -11,12 +11,14 @@ nominal model (calib_core.model) and returns the contract's Measurements (calib_
 """
 from .campaign import Campaign, Truth, World, sample_joints
 from .mechanics import (BaseTilt, CableForce, Cantilever, Cause, ElasticBearings, EncoderScale, GearError, GearPlay,
-                        GrossOutliers, JointSpring, RailStraightness, ReHoming, ThermalGrowth)
+                        GrossOutliers, JointSpring, JointSprings, LinkGrowth, RailStraightness, ReHoming, TargetStep,
+                        TelescopicSag, ThermalGrowth, TiltedBase)
 from .robot import PhysicalRobot, Pose
-from .scenarios import EXPECTED, KINDS, hide, null_world
+from .scenarios import EXPECTED, EXPECTED_34, KINDS, MECHANISMS_34, hide, null_world
 
 __all__ = [
     "World", "Campaign", "Truth", "sample_joints", "PhysicalRobot", "Pose", "hide", "null_world", "EXPECTED",
-    "KINDS", "Cause", "JointSpring", "GearPlay", "GearError", "EncoderScale", "RailStraightness", "Cantilever",
-    "BaseTilt", "ElasticBearings", "ReHoming", "ThermalGrowth", "CableForce", "GrossOutliers",
+    "KINDS", "EXPECTED_34", "MECHANISMS_34", "Cause", "JointSpring", "GearPlay", "GearError", "EncoderScale",
+    "RailStraightness", "Cantilever", "BaseTilt", "ElasticBearings", "ReHoming", "ThermalGrowth", "CableForce", "GrossOutliers",
+    "JointSprings", "LinkGrowth", "TargetStep", "TiltedBase", "TelescopicSag",
 ]

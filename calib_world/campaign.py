@@ -88,6 +88,8 @@ class World:
         self.ambient_degC = float(20.0 + rng.uniform(-2.0, 2.0))
         self.warming_degC = 6.0
         self.warming_tau_s = 5400.0
+        self.hvac: tuple | None = None
+        """(amplitude deg C, period s, phase rad) of the air conditioning's cycle on top of the warming, or None."""
         self.last: Campaign | None = None
 
     # ------------------------------------------------------------------------------------ setup
@@ -101,9 +103,14 @@ class World:
         return sample_joints(self.robot, n, self.rng if rng is None else rng)
 
     def temperature_at(self, t: np.ndarray) -> np.ndarray:
-        """The workshop's physical temperature (deg C) at times t: warming from ambient after the start."""
+        """The workshop's physical temperature (deg C) at times t: warming from ambient after the start, and the air
+        conditioning's cycle when `hvac` is set."""
         dt = np.maximum(np.asarray(t, float) - self.start_time, 0.0)
-        return self.ambient_degC + self.warming_degC * (1.0 - np.exp(-dt / self.warming_tau_s))
+        temp = self.ambient_degC + self.warming_degC * (1.0 - np.exp(-dt / self.warming_tau_s))
+        if self.hvac is not None:
+            amp, period, phase = self.hvac
+            temp = temp + amp * (np.sin(2 * np.pi * dt / period + phase) - np.sin(phase))
+        return temp
 
     def columns(self, q, payload_kg=None, temperature: bool = False, start_time: float | None = None) -> Measurements:
         """The non-positional columns of a campaign at joints q: timestamps 20 s apart, optional logged

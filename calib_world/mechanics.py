@@ -8,6 +8,7 @@ Joints are given by index or name.  `scaled(f)` gives the same cause f times as 
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -283,13 +284,17 @@ class Cantilever(Cause):
         L1, s1 = L[:, None, None], s[..., None]
         defl = (Fp * s1**2 * (3 * L1 - s1) / 6 + cross(Mp, uu) * s1 * (2 * L1 - s1) / 2).sum(1) * c
         turn = (cross(uu, Fp) * s1**2 / 2 + Mp * s1).sum(1) * c
-        own = self.own_mass_kg
-        if own is None:
-            own = 0.0 if r.prismatic[k] else r.mass[k - 1]
-        W = perp(own * np.broadcast_to(g, (ctx.N, 3)))
+        own = self.own_weight_kg(r, k, L)  # a number, or (N,) per pose
+        W = perp((own[:, None] if np.ndim(own) else own) * np.broadcast_to(g, (ctx.N, 3)))
         defl = defl + W * L[:, None] ** 3 / 8 * c
         turn = turn + cross(u, W) * L[:, None] ** 2 / 6 * c
         return defl, turn, tip, root
+
+    def own_weight_kg(self, robot: PhysicalRobot, k: int, length_mm: np.ndarray):
+        """The beam's own mass (kg) spread evenly along it: own_mass_kg, by default the body carrying it."""
+        if self.own_mass_kg is not None:
+            return self.own_mass_kg
+        return 0.0 if robot.prismatic[k] else robot.mass[k - 1]
 
     def structure(self, ctx, pose):
         if not np.isfinite(self.EI):
@@ -446,6 +451,166 @@ class GrossOutliers:
         out = np.zeros((N, 3))
         out[idx] = d
         return idx, out
+
+
+# ------------------------------------------------------------------------------------------- issue 34's mechanisms
+@dataclass(frozen=True)
+class JointSprings(Cause):
+    """Several joints' drives are linear springs, the others stiff: each joint in `springs` winds by its
+    compliance (rad/(N*m) or mm/N) x the true gravity + payload load it carries (the world's statics)."""
+
+    springs: tuple = ()
+    compliance: tuple = ()
+    magnitude: ClassVar[tuple] = ("compliance",)
+    kind = "joint_springs"
+
+    def joints(self, robot):
+        return [robot.names[joint_index(robot, j)] for j in self.springs]
+
+    def describe(self, robot):
+        return {"cause": type(self).__name__, "world_kind": self.kind, "springs": self.joints(robot),
+                "compliance": [float(c) for c in self.compliance]}
+
+    def joint_offset(self, ctx):
+        dq = np.zeros_like(ctx.q)
+        for j, c in zip(self.springs, self.compliance):
+            k = joint_index(ctx.robot, j)
+            dq[:, k] += c * ctx.loads[:, k]
+        return dq
+
+
+@dataclass(frozen=True)
+class LinkGrowth(Cause):
+    """One link warms and grows along its length only: the segment from joint `joint`-1's frame to joint `joint`'s
+    frame (its MD-H a and d, the frame's turn untouched) lengthens by coeff_per_degC (1/deg C) x the rise of the
+    physical temperature above `reference_degC` (default the world's ambient at the start).  No other link,
+    the tool or the tracker moves with the temperature."""
+
+    joint: int | str = 1
+    coeff_per_degC: float = 0.0
+    reference_degC: float | None = None
+    magnitude: ClassVar[tuple] = ("coeff_per_degC",)
+    kind = "link_growth"
+
+    def joints(self, robot):
+        return []  # a thermal cause: the contract's thermal_drift names no joint (the link is in `describe`)
+
+    def describe(self, robot):
+        return {**super().describe(robot), "link": robot.names[joint_index(robot, self.joint)]}
+
+    def geometry(self, ctx, geometry, tool):
+        k = joint_index(ctx.robot, self.joint)
+        rise = ctx.temperature - (ctx.ambient_degC if self.reference_degC is None else self.reference_degC)
+        grow = 1.0 + self.coeff_per_degC * rise
+        geometry = geometry.copy()
+        geometry[:, k, 0] *= grow
+        geometry[:, k, 2] *= grow
+        return geometry, tool
+
+
+@dataclass(frozen=True)
+class TargetStep(Cause):
+    """The target (SMR nest or tool) was taken off and re-mounted during the campaign: from `at_time` (s since the
+    epoch; the time of pose `at_pose` in time order) on, the measured point sits `offset_mm` (3,) further in the
+    last joint's frame.  Nothing else changes."""
+
+    offset_mm: tuple = (0.0, 0.0, 0.0)
+    at_time: float = 0.0
+    at_pose: int = 0
+    magnitude: ClassVar[tuple] = ("offset_mm",)
+    kind = "target_step"
+
+    def after(self, ctx) -> np.ndarray:
+        """(N,) True at poses measured at or after the re-mount."""
+        return np.asarray(ctx.time, float) >= self.at_time
+
+    def geometry(self, ctx, geometry, tool):
+        return geometry, tool + self.after(ctx)[:, None] * np.asarray(self.offset_mm, float)
+
+
+@dataclass(frozen=True)
+class TiltedBase(Cause):
+    """The robot stands on a base that is not level (or is mounted inclined while its model says upright):
+    gravity's true direction is turned by the rotation vector `tilt_rad` (3,) in the base frame against the
+    robot's.  Kinematically invisible (the tracker frame absorbs a rigid tilt); it shows only through the
+    compliant causes it `carries` (springs, bending links), which then work under the tilted gravity."""
+
+    tilt_rad: tuple = (0.0, 0.0, 0.0)
+    carries: tuple = ()
+    kind = "tilted_base"
+
+    def scaled(self, f):
+        """The carried compliance f times as large; the tilt stays (it is geometry, not a magnitude)."""
+        return dataclasses.replace(self, carries=tuple(c.scaled(f) for c in self.carries))
+
+    def tilted(self, ctx: Context) -> Context:
+        """The same context on the robot with gravity turned by the tilt (loads recomputed)."""
+        r = copy.copy(ctx.robot)
+        r.gravity = rotvec(np.asarray(self.tilt_rad, float)) @ ctx.robot.gravity
+        return dataclasses.replace(ctx, robot=r, _loads=None)
+
+    def joints(self, robot):
+        return [j for c in self.carries for j in c.joints(robot)]
+
+    def describe(self, robot):
+        return {"cause": type(self).__name__, "world_kind": self.kind, "tilt_rad": [float(t) for t in self.tilt_rad],
+                "tilt_deg": float(np.degrees(np.linalg.norm(self.tilt_rad))),
+                "carries": [c.describe(robot) for c in self.carries]}
+
+    def joint_offset(self, ctx):
+        offs = [o for o in (c.joint_offset(self.tilted(ctx)) for c in self.carries) if o is not None]
+        return sum(offs) if offs else None
+
+    def structure(self, ctx, pose):
+        t = self.tilted(ctx)
+        return [s for c in self.carries for s in c.structure(t, pose)]
+
+
+@dataclass(frozen=True)
+class TelescopicSag(Cantilever):
+    """A telescopic stage (prismatic joint `joint`): its inner tube, out by the joint's CURRENT length, is a
+    cantilever of stiffness EI (N*mm^2) clamped in the outer tube's guide, weighing tube_kg_per_mm along the
+    length that is out (heavier the further out), loaded by the bodies beyond and the payload at the tool.  The
+    guide's bearings give too: the tube turns about its root by guide_compliance (rad/(N*m)) x the bending
+    moment there (the part across the tube), carrying the bent beam with it."""
+
+    tube_kg_per_mm: float = 0.0
+    guide_compliance: float = 0.0
+    kind = "telescopic_sag"
+
+    def scaled(self, f):
+        return dataclasses.replace(self, EI=self.EI / f if f != 0 else np.inf,
+                                   guide_compliance=self.guide_compliance * f)
+
+    def own_weight_kg(self, robot, k, length_mm):
+        return self.tube_kg_per_mm * np.asarray(length_mm, float)
+
+    def root_moment(self, ctx: Context, pose: Pose) -> np.ndarray:
+        """Bending moment (N, 3) N*m across the tube at its root, tracker frame: every body beyond, the payload
+        and the tube's own weight (at the middle of the length that is out)."""
+        r = ctx.robot
+        k = joint_index(r, self.joint)
+        root, tip = pose.origins[:, k - 1], pose.origins[:, k]
+        L = np.linalg.norm(tip - root, axis=1)
+        u = (tip - root) / np.maximum(L, 1e-12)[:, None]
+        g = np.einsum("nab,b->na", pose.base[:, :3, :3], r.gravity)
+        com = r.body_coms(pose)
+        M = (r.mass[None, k:, None] * cross(com[:, k:] - root[:, None], g[:, None])).sum(1)
+        M += np.asarray(ctx.payload, float)[:, None] * cross(pose.point - root, g)
+        M += (self.tube_kg_per_mm * L)[:, None] * cross(0.5 * L[:, None] * u, g)
+        M /= 1000.0
+        return M - (M * u).sum(1, keepdims=True) * u
+
+    def structure(self, ctx, pose):
+        if not np.isfinite(self.EI) and self.guide_compliance == 0:
+            return []
+        k = joint_index(ctx.robot, self.joint)
+        defl, turn, tip, root = self.tip(ctx, pose)
+        D = about_point(turn, tip, defl)
+        if self.guide_compliance:
+            D = about_point(self.guide_compliance * self.root_moment(ctx, pose), root) @ D
+        F = pose.frames[:, k - 1]
+        return [("pre", k, inverse(F) @ D @ F)]
 
 
 # ------------------------------------------------------------------------------------------- apply

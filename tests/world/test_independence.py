@@ -55,7 +55,8 @@ import calib_world, calib_world.campaign, calib_world.scenarios, calib_world.mec
 from calib_core.robots import spray7
 world = calib_world.World(calib_core.model.parse_model(spray7()), 1)
 rng = np.random.default_rng(1)
-for kind in ("joint_spring", "telescopic_bending", "thermal_growth"):
+for kind in ("joint_spring", "telescopic_bending", "thermal_growth", "play_load_sign", "link_thermal_growth",
+             "target_remount", "tilted_base_spring", "tilted_base_sag", "telescopic_sag", "two_joint_springs"):
     calib_world.hide(world, kind, 2.0, rng, n=30)
 world.campaign(n=20, payload_kg=5.0, temperature=True, repeats=2)
 print(json.dumps(sorted(m for m in set(sys.modules) - before if m.startswith("calib_core"))))
