@@ -33,10 +33,16 @@ def holdout_gain(before: Calibration, after: Calibration) -> tuple[float, float]
     scale error at 5x the noise had a sixth of the poses flagged by the geometric fit, and the gain on them hidden).
     The targets measured at one pose count as one in the tests (their drops summed): they share the pose's errors."""
     keep = before.inliers() | after.inliers()
-    d = before.holdout_residual_mm[keep] ** 2 - after.holdout_residual_mm[keep] ** 2
+    return paired_gain(before.holdout_residual_mm[keep] ** 2 - after.holdout_residual_mm[keep] ** 2,
+                       None if before.pose_index is None else before.pose_index[keep])
+
+
+def paired_gain(d: np.ndarray, pose_index: np.ndarray | None = None) -> tuple[float, float]:
+    """holdout_gain's test on the per-row drops d (mm^2) of the squared held-out distance: (p-value, mean drop);
+    rows of one pose (pose_index) count as one unit."""
     drop = float(d.mean())
-    if before.pose_index is not None:  # the targets of one pose are one unit: they share its errors (shared_motion)
-        d = np.bincount(before.pose_index[keep], d)[np.unique(before.pose_index[keep])]
+    if pose_index is not None:  # the targets of one pose are one unit: they share its errors (shared_motion)
+        d = np.bincount(pose_index, d)[np.unique(pose_index)]
     sd = float(d.std(ddof=1)) if len(d) > 1 else 0.0
     if sd <= 0.0:
         return (0.0 if drop > 0 else 1.0), drop
