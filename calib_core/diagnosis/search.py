@@ -10,7 +10,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..effects import Backlash, Effect, JointCompliance, LoadCompliance, SessionStep, candidates
+from ..effects import Backlash, Effect, JointCompliance, LoadCompliance, SessionStep, candidates, on_joints
 from ..effects.residual import LENGTH_SCALES, fit_residual_field
 from ..effects.structure import step_candidates
 from ..identify import Calibration, identify
@@ -18,7 +18,7 @@ from ..io import Measurements
 from ..model import RobotModel
 from ..select import select_geometry
 from .evidence import HOLDOUT_ALPHA, _better, _p, holdout_gain, holdout_ms
-from .findings import _chain, _finding, _judge_sizes, _who, present_findings
+from .findings import SIGNIFICANT_STD, _beyond, _chain, _finding, _judge_sizes, _who, present_findings
 from .fitter import _Fitter
 from .lookalikes import _best_of_lookalikes, _cause, _merge_alike, _refine, _refine_step, _revisit
 from .masses import (_distributed, _identify_masses, _lateral, _load_pool, _mass_driven, _on_carried_masses,
@@ -277,6 +277,53 @@ class _Search:
             return True
         return False
 
+    def narrowed(self, report: Callable[[float, str], None]) -> bool:
+        """A compliance of several joints refitted in the same form on the joints whose share is beyond
+        SIGNIFICANT_STD std of zero, kept in its place when held-out poses do not find the wider one better (fewer
+        parameters for the same fit: issue 34, springs on two joints were fitted and named as the compliance of
+        five, three of them within 1 std of zero). True if one was narrowed."""
+        done = False
+        for i, e in enumerate(list(self.chosen)):
+            if not (isinstance(e, (JointCompliance, LoadCompliance)) and len(e.joints) > 1
+                    and not getattr(e, "load_coef", ())):
+                continue
+            if self.late("a compliance of several joints on the joints that carry a share"):
+                break
+            table = {p["name"]: p for p in self.current.parameters()}
+            names = e.parameter_names(self.model)
+            signed = isinstance(e, JointCompliance)  # a spring never gives the wrong way (present_findings)
+            sig = [j for j in e.joints if any((_beyond(table[p]) if signed else abs(_beyond(table[p])))
+                                              > SIGNIFICANT_STD for p in names
+                                              if p in table and p.startswith(self.model.joint_names[j] + "."))]
+            if not sig or len(sig) == len(e.joints):
+                continue
+            narrow = on_joints(e, sig)
+            report(0.83, f"{narrow.label(self.model)} in place of {e.label(self.model)}")
+            chosen = self.chosen[:i] + [narrow] + self.chosen[i + 1:]
+            try:
+                trial = self.fit(chosen, self.current.x)
+            except ValueError:
+                continue
+            hb, ht = self.current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
+            if _better(trial, self.current, HOLDOUT_ALPHA):
+                p, _ = holdout_gain(trial, self.current)
+                self.rejected.append({**_who(narrow, self.model), "why": f"in place of {e.label(self.model)} (its "
+                                      f"joints with a share beyond {SIGNIFICANT_STD:g} std): held-out poses find the "
+                                      f"wider form better ({ht:.3f} -> {hb:.3f} mm, paired p = {p:.1e})"})
+                continue
+            base = self.fit(chosen[:i] + chosen[i + 1:], trial.x)  # what the narrowed form adds, for its figures
+            ranked, _ = screen(base, self.meas, self.sigma, [narrow], base.x, self.alpha)
+            if not ranked:
+                continue
+            weak = ", ".join(self.model.joint_names[j] for j in e.joints if j not in sig)
+            self.rejected.append({**_who(e, self.model), "why": f"{weak} carry no share beyond {SIGNIFICANT_STD:g} "
+                                  f"std of zero; the same form on {', '.join(_who(narrow, self.model)['joints'])} "
+                                  f"alone does as well on held-out poses ({hb:.3f} -> {ht:.3f} mm)"})
+            self.chosen, self.current, self.x_ref = chosen, trial, trial.x
+            self.findings[i] = _finding(ranked[0], self.model, base, trial, self.floor, [], self.meas)
+            done = True
+        return done
+
     def identify_masses(self, notes: list[str], report: Callable[[float, str], None]) -> bool:
         """One joint fit on the final geometry, then the mass data under the compliances found
         (_identify_masses); True if identified masses replaced the model's. Only when a compliance needs mass data:
@@ -344,6 +391,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     if search.masses_identified():  # what the causes did on the guessed masses, on the identified ones
         search.revisit(report)
         search.spread(notes, report)
+    while search.narrowed(report):  # each pass drops joints: the narrowed form's own shares decide the next
+        pass
     found = {(f["kind"], tuple(f["joints"])) for f in search.findings}
     rejected = [r for r in search.rejected if (r["kind"], tuple(r["joints"])) not in found]
     current, chosen, findings, x_ref = search.current, search.chosen, search.findings, search.x_ref
@@ -375,8 +424,10 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             findings.append(_unexplained_finding(model, before, trial, floor, follows, basis, current, said))
         else:
             new_floor = float(held_out_rms)
-            notes.append(f"the residual ({new_floor:.3f} mm RMS held out) is above the assumed noise floor "
-                         f"({floor:.3f} mm) but follows nothing: not time order, no joint, not the load, no region "
+            after = f" left after {', '.join(e.label(model) for e in chosen)}" if chosen else ""
+            notes.append(f"the residual{after} ({new_floor:.3f} mm RMS held out) is above the assumed noise floor "
+                         f"({floor:.3f} mm) but follows nothing{' more' if chosen else ''}: not time order, no "
+                         f"joint, not the load, no region "
                          f"of the workspace; it looks like noise, so the robot's repeatability (or the instrument's "
                          f"noise) is probably worse than assumed. Measure some poses twice to know the floor.")
             note = f"estimated from the structure-free held-out residual (assumed floor was {floor:.3f} mm)"

@@ -7,23 +7,25 @@ import numpy as np
 
 from ..io import Measurements
 from ..kinematics import Chain, nominal_vector
-from ..model import RobotModel
+from ..model import ANGULAR, GEOMETRIC, RobotModel
 from .base import Basis, Context, Effect, apply, has_loads, loads
-from .cartesian_effects import AxisStraightness, LinkDeflection, ThermalDrift
+from .cartesian_effects import AxisStraightness, LinkDeflection, LinkGrowth, ThermalDrift
 from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale
 from .residual import ResidualField
-from .structure import Probe, SessionStep
+from .structure import Probe, SessionStep, TargetStep
 
 CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointError, Backlash, JointScale,
                                    AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, LateralCompliance,
                                    LateralJointCompliance,
-                                   SessionStep, Probe)}
+                                   SessionStep, Probe, TargetStep, LinkGrowth)}
 KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
          "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
          "thermal_drift": ThermalDrift, "unexplained": ResidualField}
 """Kind -> class for states stored before the class name was (the contract's kinds are not unique per class)."""
 HARMONICS = (1, 2, 3)
+LINK_GROWTH_SHARE = 0.1
+"""A link is a candidate for growing with temperature when its lengths (a, d, b) reach this share of the longest's."""
 
 
 def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], list[str]]:
@@ -62,9 +64,24 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
     out += [AxisStraightness((j,)) for j in moving if model.prismatic[j]]
     if meas.temperature is not None or meas.timestamp is not None:
         out.append(ThermalDrift.for_data(meas))
+    if meas.temperature is not None and np.ptp(meas.temperature) > 0:
+        # one link growing along its length (a motor or the sun warming it): links of a tenth of the longest or more
+        lengths = [GEOMETRIC.index(p) for p in GEOMETRIC if p not in ANGULAR]
+        length = np.linalg.norm(np.asarray(model.geometry, float)[:, lengths], axis=1)
+        out += [LinkGrowth.for_link(meas, k) for k in range(n) if length[k] >= LINK_GROWTH_SHARE * length.max() > 0]
     else:
         notes.append("no timestamp or temperature column: thermal_drift cannot be tested")
     return out, notes
+
+
+def on_joints(effect: Effect, joints) -> Effect:
+    """The same form of a cause on some of its joints (a compliance of several joints on the ones that carry a share):
+    each joint keeps what it has of its own (an identified load's mix)."""
+    joints = tuple(joints)
+    if isinstance(effect, LoadCompliance):
+        mix = dict(zip(effect.joints, effect.load_mix))
+        return dataclasses.replace(effect, joints=joints, load_mix=tuple(mix[j] for j in joints))
+    return dataclasses.replace(effect, joints=joints)
 
 
 def effect_state(effect: Effect, values: np.ndarray) -> dict:
@@ -87,5 +104,5 @@ def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
     return cls(**{k: _frozen(v) for k, v in d.items()}), values
 
 
-__all__ = ["effect_state", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LateralJointCompliance", "LoadCompliance", "Probe", "SessionStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
-           "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "ThermalDrift"]
+__all__ = ["effect_state", "on_joints", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LateralJointCompliance", "LoadCompliance", "Probe", "SessionStep", "TargetStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
+           "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "LinkGrowth", "ThermalDrift"]

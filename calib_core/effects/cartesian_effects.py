@@ -193,3 +193,42 @@ class ThermalDrift(Effect):
 
     def explain(self, model):
         return "the robot drifts against the tracker as it warms up (or over time)"
+
+
+@dataclass(frozen=True)
+class LinkGrowth(ThermalDrift):
+    """One link growing along its length with temperature: the segment row `link`'s MD-H lengths (a, d, b) span
+    lengthens by the parameter (1/deg C) times the temperature above the calibration mean; nothing else moves (issue
+    34: a link warmed by its motor or the sun, where ThermalDrift's drift plus one expansion of every link leaves
+    most of it). Kind thermal_drift, naming no joint; the link is in its form and prose. 1 parameter."""
+
+    link: int = 0
+
+    @classmethod
+    def for_link(cls, meas, link: int) -> "LinkGrowth":
+        t = meas.temperature
+        return cls((), source="temperature", ref=float(t.mean()), lo=float(t.min()), hi=float(t.max()), link=link)
+
+    def parameter_names(self, model):
+        return [f"thermal.growth_{model.joint_names[self.link]}"]
+
+    def parameter_units(self, model):
+        return ["1/degC"]
+
+    def basis(self, ctx: Context) -> Basis:
+        s, label = self.driver(ctx.meas)
+        return Basis(None, (self.growth_of(ctx.chain, self.link) * s[:, None])[:, :, None], s, label)
+
+    @staticmethod
+    def growth_of(chain, k: int) -> np.ndarray:
+        """(N, 3) mm the tool point moves when row k's lengths (a, d, b) grow by 1 (strain)."""
+        G = len(GEOMETRIC)
+        idx = np.array([G * k + GEOMETRIC.index(p) for p in GEOMETRIC if p not in ANGULAR])
+        return chain.jacobian()[:, :, idx] @ chain.x[idx]
+
+    def label(self, model):
+        return f"thermal_drift[link {model.joint_names[self.link]}]"
+
+    def explain(self, model):
+        return (f"the link ending at {model.joint_names[self.link]} grows along its length as it warms (the "
+                f"temperature column)")

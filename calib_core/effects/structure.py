@@ -86,8 +86,34 @@ class SessionStep(Effect):
         return f"{what} shifted mid-session (a re-homing, a bumped tracker or SMR nest)"
 
 
+@dataclass(frozen=True)
+class TargetStep(SessionStep):
+    """A step at `at` in time order of the measured target against the frame it sits on (a marker, SMR nest or tool
+    taken off and re-mounted mid-campaign): from then on the point sits (x, y, z) mm further in that frame (the
+    flange's, for a tool), at every pose after the step; 3 parameters. A joint's zero or the whole robot's shift
+    cannot carry it: the offset turns with the flange (issue 34, a target re-mounted at pose N)."""
+
+    def parameter_names(self, model):
+        return [f"target_step.{a}" for a in ("x", "y", "z")]
+
+    def parameter_units(self, model):
+        return ["mm"] * 3
+
+    def basis(self, ctx: Context) -> Basis:
+        s = self.after(ctx.meas)
+        return Basis(None, ctx.chain.R_end * s[:, None, None], s, "after the step (0 / 1)")
+
+    def label(self, model):
+        return f"step[target @ {self.at:g}]"
+
+    def explain(self, model):
+        return ("the measured target (a marker, SMR nest or tool) moved on the flange mid-session: re-mounted or "
+                "knocked, it sits elsewhere on the frame it is fixed to from then on")
+
+
 def step_candidates(meas, joints: list[int], n_splits: int = 16, margin: int = 8) -> list[SessionStep]:
-    """Steps at n_splits evenly spaced places in time order, each on the whole robot and on every joint."""
+    """Steps at n_splits evenly spaced places in time order, each on the whole robot, of the target on its flange
+    (TargetStep) and on every joint."""
     clock, source = session_clock(meas)
     order = np.sort(clock)
     N = len(order)
@@ -98,6 +124,7 @@ def step_candidates(meas, joints: list[int], n_splits: int = 16, margin: int = 8
     for i in idx:
         place = at_gap(order, i, source)
         out.append(SessionStep((), source=source, **place))
+        out.append(TargetStep((), source=source, **place))
         out += [SessionStep((j,), source=source, **place) for j in joints]
     return out
 

@@ -1,0 +1,97 @@
+"""Issue 34's mechanisms, found blind: the robot, the mechanism's joints or link, its size and the seed are drawn
+through the independent world (calib_world), and the diagnosis must name it right (or, for a target re-mounted
+mid-campaign, say it is a step in time order at the re-mount), name nothing else physical, and predict fresh poses
+with it; a no-effect draw of the same settings names nothing."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from calib_core.diagnosis import diagnose
+from calib_core.diagnosis.findings import is_named, named_joints
+from calib_core.model import parse_model
+from calib_core.robots import arm6, spray7
+from calib_world import World, hide
+
+ROBOTS = {"spray7": parse_model(spray7()), "arm6": parse_model(arm6())}
+LOAD_CYCLE_KG = {"spray7": [0.0, 10.0, 20.0], "arm6": [0.0, 5.0]}
+"""The payload column of load-driven draws, as benchmarks/detection.py measures them."""
+SIZES = (1.5, 4.0)
+"""Drawn log-uniformly (x the noise RMS of the unabsorbable part); the benchmark measures from 1x."""
+TRUTH_LIMIT = 0.8
+"""Fresh poses against the world's noise-free truth, RMS over the best 95 % / noise RMS (a pose measured between
+the two poses a step fell between may sit on either side of it). The benchmark's median is 0.2-0.3x; a single draw
+must stay below this, where the geometry alone leaves 1.5-4x."""
+
+
+def _draw(kind: str, seed: int, size: float | None = None):
+    rng = np.random.default_rng((seed, 34))
+    robot = str(rng.choice(sorted(ROBOTS)))
+    model = ROBOTS[robot]
+    size = float(np.exp(rng.uniform(*np.log(SIZES)))) if size is None else size
+    world = World(model, seed)
+    q = world.sample_joints(150, rng)
+    payload = LOAD_CYCLE_KG[robot] if kind == "two_joint_springs" else None
+    info = hide(world, kind, size, rng, q=q, payload_kg=payload)
+    camp = world.campaign(q, payload_kg=payload, temperature=info["temperature"])
+    where = f"{kind} on {robot} {info['parameters']} at {size:.2f}x the noise, seed {seed}"
+    return model, world, info, camp, payload, where
+
+
+def _truth_error(world, cal, info, camp, payload, seed) -> float:
+    rv = np.random.default_rng((seed, 35))
+    q = world.sample_joints(100, rv)
+    t = np.linspace(camp.meas.timestamp[0], camp.meas.timestamp[-1], 100)
+    cols = dataclasses.replace(world.columns(q, payload, info["temperature"]), timestamp=t,
+                               temperature=world.temperature_at(t) if info["temperature"] else None)
+    d = np.sort(np.linalg.norm(cal.predict(q, cols) - world.true_points(q, cols), axis=1))[:95]
+    return float(np.sqrt(np.mean(d**2))) / world.noise_rms_mm(q)
+
+
+def _said(d) -> list:
+    return [(f["kind"], f["joints"], f.get("significant_joints"), f.get("form")) for f in d.findings]
+
+
+def test_springs_on_two_joints_are_named_for_those_two(seed):
+    model, world, info, camp, payload, where = _draw("two_joint_springs", seed)
+    d = diagnose(model, camp.meas)
+    where += f": said {_said(d)}"
+    hidden = set(info["joints"])
+    named = [f for f in d.findings if is_named(f)]
+    springs = [f for f in named if f["kind"] == "joint_compliance"]
+    # the form fitted is on the two joints (one finding, or one per joint), not a spread compliance of five
+    assert set().union(*[set(f["joints"]) for f in springs]) == hidden, where
+    assert all(set(named_joints(f)[0]) <= hidden for f in named), where
+    assert _truth_error(world, d.calibration, info, camp, payload, seed) < TRUTH_LIMIT, where
+
+
+def test_a_target_remounted_mid_campaign_is_a_step_of_the_target_in_time_order(seed):
+    model, world, info, camp, payload, where = _draw("target_remount", seed)
+    d = diagnose(model, camp.meas)
+    where += f": said {_said(d)}"
+    n = info["notes"]["at_pose"]  # 0-based index in time order of the first pose after the re-mount
+    ids = camp.meas.point_ids
+    step = [f for f in d.findings if str(f.get("form", "")).startswith("step[target")]
+    assert len(step) == 1, where
+    assert f"between {ids[n - 1]} and {ids[n]}" in step[0]["evidence"], where
+    assert not any(is_named(f) for f in d.findings), where  # no physical name: no thermal drift, no joint cause
+    assert "follows nothing: not time order" not in " ".join(d.notes), where  # what is left follows nothing more
+    assert _truth_error(world, d.calibration, info, camp, payload, seed) < TRUTH_LIMIT, where
+
+
+def test_one_link_growing_with_temperature_is_named_for_that_link(seed):
+    model, world, info, camp, payload, where = _draw("link_thermal_growth", seed)
+    d = diagnose(model, camp.meas)
+    where += f": said {_said(d)}"
+    named = [f for f in d.findings if is_named(f)]
+    assert named and all(f["kind"] == "thermal_drift" for f in named), where
+    link = info["parameters"]["link"]
+    assert any(f.get("form") == f"thermal_drift[link {link}]" for f in named), where
+    assert _truth_error(world, d.calibration, info, camp, payload, seed) < TRUTH_LIMIT, where
+
+
+@pytest.mark.parametrize("kind", ["two_joint_springs", "target_remount", "link_thermal_growth"])
+def test_no_mechanism_means_no_finding(kind, seed):
+    model, world, info, camp, payload, where = _draw(kind, seed, size=0.0)
+    d = diagnose(model, camp.meas)
+    assert d.findings == [], f"{where}: said {_said(d)}"
