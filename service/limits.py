@@ -8,9 +8,14 @@ Whatever answers a request before its body is read (that 413, a 401, a 404 on a 
 read and thrown away before the answer goes out, up to `drain_bytes` (and `DRAIN_SECONDS`): a client that
 sends its body without `Expect: 100-continue` (Python's urllib, many PLC and cell-PC HTTP stacks) is still
 writing it, and closing a socket with unread data makes the kernel reset the connection, so the client would
-see "connection reset" instead of the answer. A body beyond that bound is not read: the answer is sent with
-`Connection: close` (the client may then see a reset). A client that waits for `100 Continue` is answered at
-once, and nothing is read.
+see "connection reset" instead of the answer. The connection then stays open (keep-alive).
+
+A body beyond that bound (issue 33: a 90 MB upload reached http.client and urllib as BrokenPipe, not the 413)
+gets a lingering close, as nginx's: the whole answer is sent at once with `Connection: close`, then the rest of
+the body is read and thrown away, up to `linger_bytes` (16x the limit, at least 256 MiB), `LINGER_SECONDS` in all
+and `LINGER_IDLE_SECONDS` without a byte, and only then is the connection closed. A client that reads while it
+sends (curl) stops at the answer; one that sends first reads it once its body is gone. Beyond those bounds the
+client may see a reset. A client that waits for `100 Continue` is answered at once, and nothing is read.
 
 `HeadMiddleware`: HEAD on any GET route answers like GET (status, headers, Content-Length) without a body.
 
@@ -46,6 +51,11 @@ from .problems import problem_response
 DRAIN_SECONDS = 30.0
 """At most this long is spent reading and discarding a refused request's body."""
 MIN_DRAIN_BYTES = 64 * 1024 * 1024
+LINGER_SECONDS = 30.0
+"""A lingering close reads and discards at most this long after the answer was sent (nginx's lingering_time)."""
+LINGER_IDLE_SECONDS = 5.0
+"""... and stops when the client sends nothing for this long (nginx's lingering_timeout)."""
+MIN_LINGER_BYTES = 256 * 1024 * 1024
 CLOSE = (b"connection", b"close")
 
 MAX_PREDICT_ROWS = 10_000
@@ -76,9 +86,10 @@ def _with_close(msg: Message) -> Message:
 
 
 class BodyLimitMiddleware:
-    def __init__(self, app: ASGIApp, max_bytes: int, drain_bytes: int | None = None):
+    def __init__(self, app: ASGIApp, max_bytes: int, drain_bytes: int | None = None, linger_bytes: int | None = None):
         self.app, self.max_bytes = app, max_bytes
         self.drain_bytes = max(4 * max_bytes, MIN_DRAIN_BYTES) if drain_bytes is None else drain_bytes
+        self.linger_bytes = max(16 * max_bytes, MIN_LINGER_BYTES) if linger_bytes is None else linger_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -94,21 +105,24 @@ class BodyLimitMiddleware:
         waits_for_continue = (header(scope, b"expect") or b"").lower() == b"100-continue"
         state = {"seen": 0, "done": not (chunked or (declared or 0) > 0), "asked": False}
 
-        async def drain() -> bool:
-            """Read and discard the rest of the body; True when all of it was read."""
+        async def drain(max_bytes: int | None = None, seconds: float = DRAIN_SECONDS,
+                        idle: float | None = None) -> bool:
+            """Read and discard the rest of the body (at most max_bytes in all, default drain_bytes, and `seconds`,
+            or `idle` seconds without a byte); True when all of it was read."""
             if state["done"]:
                 return True
             if waits_for_continue and not state["asked"]:
                 return False  # the client has not sent it and will not unless asked
-            if declared is not None and declared > self.drain_bytes:
+            max_bytes = self.drain_bytes if max_bytes is None else max_bytes
+            if declared is not None and declared > max_bytes:
                 return False
-            deadline = time.monotonic() + DRAIN_SECONDS
-            while state["seen"] <= self.drain_bytes:
+            deadline = time.monotonic() + seconds
+            while state["seen"] <= max_bytes:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
                 try:
-                    msg = await asyncio.wait_for(receive(), left)
+                    msg = await asyncio.wait_for(receive(), left if idle is None else min(left, idle))
                 except asyncio.TimeoutError:
                     return False
                 if msg["type"] != "http.request":
@@ -120,13 +134,19 @@ class BodyLimitMiddleware:
                     return True
             return False
 
+        async def linger() -> None:
+            """After the whole answer went out: read and discard what the client still sends (bounded)."""
+            if not state["done"] and not (waits_for_continue and not state["asked"]):
+                await drain(self.linger_bytes + state["seen"], LINGER_SECONDS, LINGER_IDLE_SECONDS)
+
         if declared is not None and declared > limit:
             response = problem_response(Request(scope), 413, f"the request body ({declared} bytes) exceeds the "
                                         f"limit of {limit} bytes", kind="too-large")
-            await self._answer(response, drain, scope, receive, send)
+            await self._answer(response, drain, linger, scope, receive, send)
             return
 
         started = False
+        lingering = False
 
         async def limited_receive() -> Message:
             state["asked"] = True
@@ -142,11 +162,16 @@ class BodyLimitMiddleware:
             return msg
 
         async def guarded_send(msg: Message) -> None:
-            nonlocal started
+            nonlocal started, lingering
             if msg["type"] == "http.response.start":
                 started = True
                 if not state["done"] and not await drain():
-                    msg = _with_close(msg)
+                    msg, lingering = _with_close(msg), True
+            elif lingering and msg["type"] == "http.response.body" and not msg.get("more_body", False):
+                # the answer's last bytes go out now, the end of the response (and the close) after the linger
+                await send({**msg, "more_body": True})
+                await linger()
+                msg = {"type": "http.response.body", "body": b"", "more_body": False}
             await send(msg)
 
         try:
@@ -155,14 +180,21 @@ class BodyLimitMiddleware:
             if exc.status_code != 413 or started:
                 raise
             await self._answer(problem_response(Request(scope), 413, exc.detail, kind="too-large"),
-                               drain, scope, receive, send)
+                               drain, linger, scope, receive, send)
 
     @staticmethod
-    async def _answer(response: Response, drain: Callable[[], Awaitable[bool]], scope: Scope, receive: Receive,
-                      send: Send) -> None:
-        if not await drain():
-            response.headers["Connection"] = "close"
-        await response(scope, receive, send)
+    async def _answer(response: Response, drain: Callable[[], Awaitable[bool]], linger: Callable[[], Awaitable[None]],
+                      scope: Scope, receive: Receive, send: Send) -> None:
+        """An answer given before the body was read: the body drained first (keep-alive), or a lingering close."""
+        if await drain():
+            await response(scope, receive, send)
+            return
+        response.headers["Connection"] = "close"
+        await send({"type": "http.response.start", "status": response.status_code,
+                    "headers": response.raw_headers})
+        await send({"type": "http.response.body", "body": response.body, "more_body": True})
+        await linger()
+        await send({"type": "http.response.body", "body": b"", "more_body": False})
 
 
 class HeadMiddleware:
