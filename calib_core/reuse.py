@@ -44,17 +44,26 @@ def prepared(model: RobotModel, meas: Measurements, sigma: np.ndarray, prealign:
 
 def start_at(cal, model: RobotModel, x0: np.ndarray, idx: np.ndarray,
               effects: tuple[Effect, ...]) -> np.ndarray | None:
-    """LM's start [x[idx], effect parameters] from a calibration of the same model and parameter layout that holds
-    only effects among `effects` (a fitted model one or more causes are added to): its geometry, its effects'
-    values, 0 for the new ones. None (nominal) otherwise: values of another form (a mass step on other mass data,
-    a play with another switch) are no start at all (one elastic tree's mass identification stalled from them)."""
+    """LM's start [x[idx], effect parameters] from a calibration of the same model and parameter layout whose
+    effects are among `effects` (a fitted model one or more causes are added to) or differ from them only by
+    effects on no mass data (a rival form tried in place of one, a finding left out to test it again): its
+    geometry, the values of the effects both hold, 0 for the new ones. None (nominal) otherwise: values of another
+    form (a mass step on other mass data, a play with another switch) are no start at all (one elastic tree's mass
+    identification stalled from them)."""
     if cal is None or cal.model is not model or len(cal.x) != len(x0):
         return None
     try:
         have = {e: np.asarray(v, float) for e, v in zip(cal.effects, cal.effect_values)}
-        if not set(have) <= set(effects):
+        if not all(_on_no_mass_data(e) for e in set(have) - set(effects)):
             return None
     except TypeError:  # an effect holding arrays: not comparable, not reused
         return None
+    if any(not _on_no_mass_data(e) for e in effects if e not in have) and not set(have) <= set(effects):
+        return None
     theta = [have[e] if e in have else np.zeros(len(e.parameter_names(model))) for e in effects]
     return np.concatenate([cal.x[idx], *theta])
+
+
+def _on_no_mass_data(e: Effect) -> bool:
+    """An effect that carries no identified mass data or gravity of its own."""
+    return not getattr(e, "masses", ()) and not getattr(e, "gravity", ())
