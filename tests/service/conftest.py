@@ -72,24 +72,36 @@ class Proc:
 
 class Server(Proc):
     def __init__(self, db_url: str, log: Path, **env):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
         self.db_url = db_url
-        super().__init__(["serve", "--port", str(self.port)], base_env(db_url, **env), log)
+        for attempt in range(5):
+            self.port = free_port()
+            self.url = f"http://127.0.0.1:{self.port}"
+            logged = log.stat().st_size if log.exists() else 0
+            super().__init__(["serve", "--port", str(self.port)], base_env(db_url, **env), log)
+            if self._started(logged, last=attempt == 4):
+                break
+        self.client = httpx.Client(base_url=self.url, timeout=30)
+
+    def _started(self, logged: int, last: bool) -> bool:
+        """Wait until the server answers. False if the free port was taken meanwhile (by a server another test
+        process started, as on an xdist run): the caller tries another one."""
         deadline = time.monotonic() + 60
         while True:
             if self.p.poll() is not None:
+                self._fh.close()
+                out = self.log.read_bytes()[logged:].decode(errors="replace")
+                if "address already in use" in out.lower() and not last:
+                    return False
                 raise RuntimeError("server exited:\n" + self.output())
             try:
                 if self.ready():
-                    break
+                    return True
             except httpx.HTTPError:
                 pass
             if time.monotonic() > deadline:
                 self.stop()
                 raise RuntimeError("server did not start:\n" + self.output())
             time.sleep(0.1)
-        self.client = httpx.Client(base_url=self.url, timeout=30)
 
     def ready(self) -> bool:
         """Whether the server is up (an httpx.HTTPError counts as not yet)."""
