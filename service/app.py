@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import time
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -14,11 +15,12 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagge
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
-from sqlalchemy import func, select
+from sqlalchemy import func, select, text
 from sqlalchemy.exc import InterfaceError, OperationalError, SQLAlchemyError
 from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 
 from . import problems
+from .calibrations.compute import COMPUTERS, ROOM_PER_PROCESS
 from .calibrations.router import router as calibrations_router
 from .config import Settings
 from .db import Database, DatabaseUnavailable
@@ -87,13 +89,20 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
         sys.setswitchinterval(settings.switch_interval_ms / 1000)
         import asyncio
 
-        parsers = None
-        if settings.parse_processes > 0:  # the CSV parse processes (service/measurements), warm before serving,
-            # started alongside the job processes
-            parsers = asyncio.ensure_future(asyncio.to_thread(PARSERS.warm, settings.parse_processes))
-        planners = None
-        if settings.plan_processes > 0:  # the plan processes (service/plans/pool.py), likewise
-            planners = asyncio.ensure_future(asyncio.to_thread(PLANNERS.warm, settings.plan_processes))
+        t_start = time.monotonic()
+        warming = []  # the lanes' processes (service/lanes.py), started alongside the job processes and awaited as
+        # long as they are (CALIB_WARMUP_TIMEOUT_S in all): on a busy machine the server serves meanwhile, and a call
+        # that comes before its process is ready waits for it (not counted in its time bound)
+        if settings.parse_processes > 0:  # the CSV checks (service/measurements)
+            warming.append(asyncio.to_thread(PARSERS.warm, settings.parse_processes, settings.parse_timeout_s))
+        if settings.plan_processes > 0:  # plans (service/plans)
+            warming.append(asyncio.to_thread(PLANNERS.warm, settings.plan_processes, settings.plan_processes,
+                                             settings.plan_timeout_s))
+        if settings.compute_processes > 0:  # predict and compensate (service/calibrations/compute.py)
+            warming.append(asyncio.to_thread(COMPUTERS.warm, settings.compute_processes,
+                                             ROOM_PER_PROCESS * settings.compute_processes,
+                                             settings.compute_timeout_s))
+        warming = [asyncio.ensure_future(w) for w in warming]
         d = None
         if run_dispatcher:
             from .queue.worker import Dispatcher
@@ -103,10 +112,12 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
                 if not await asyncio.to_thread(d.wait_ready, settings.warmup_timeout_s):
                     log.warning("the job processes were not warm after %.0f s; serving anyway",
                                 settings.warmup_timeout_s)
-        if parsers is not None:
-            await parsers
-        if planners is not None:
-            await planners
+        if warming:
+            left = settings.warmup_timeout_s - (time.monotonic() - t_start)
+            _, late = await asyncio.wait(warming, timeout=max(1.0, left))
+            if late:
+                log.warning("%d lane(s) of processes were not warm after %.0f s; serving anyway", len(late),
+                            settings.warmup_timeout_s)
         app.state.dispatcher = d
         try:
             yield
@@ -115,6 +126,7 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
                 d.stop()
             PARSERS.shutdown()
             PLANNERS.shutdown()
+            COMPUTERS.shutdown()
             app.state.db.dispose()
 
     app = FastAPI(title="calib", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
@@ -168,6 +180,9 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
             with db.read_session() as s:
                 rows = s.execute(select(Job.status, func.count()).where(Job.status.in_(["queued", "running"]))
                                  .group_by(Job.status)).all()
+                if db.engine.dialect.name == "postgresql" and s.execute(text("SHOW transaction_read_only")).scalar() == "on":
+                    trouble.append("the PostgreSQL database is read-only (a standby, or default_transaction_read_only "
+                                   "on): writes are refused")
             jobs = {"queued": 0, "running": 0} | {k: int(v) for k, v in rows}
         except SQLAlchemyError as exc:
             reason = exc.reason if isinstance(exc, DatabaseUnavailable) else "the database does not answer"

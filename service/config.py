@@ -13,6 +13,12 @@ def _int(name: str, default: int) -> int:
     return int(os.environ.get(name, default))
 
 
+def default_processes() -> int:
+    """A lane's processes sized to the machine: half its cores (the API process, the job processes and the other
+    lanes need the rest), at least 1, at most 4 (service/lanes.py)."""
+    return max(1, min(4, (os.cpu_count() or 2) // 2))
+
+
 @dataclass(frozen=True)
 class Settings:
     database_url: str = "sqlite:///./calib.db"
@@ -34,9 +40,14 @@ class Settings:
     test_poison: bool = False  # CALIB_TEST_POISON: tests only, CSV comment markers make a job crash or spin (runner.py)
     route_threads: int = 8  # CALIB_ROUTE_THREADS: the API's sync routes run at most this many at once (see app.py)
     switch_interval_ms: float = 1.0  # CALIB_SWITCH_INTERVAL_MS: the API process's GIL switch interval (see app.py)
-    parse_processes: int = 1  # CALIB_PARSE_PROCESSES: uploads' CSVs are checked in this many processes (0: in the API)
+    parse_processes: int = 1  # CALIB_PARSE_PROCESSES: large uploads' CSVs are checked in this many processes, small
+    # ones in one of their own (0: in the API); default: half the cores, 1-4 (lanes.default_processes)
+    parse_timeout_s: float = 120.0  # CALIB_PARSE_TIMEOUT_S: a CSV check running longer is stopped (503)
     plan_processes: int = 1  # CALIB_PLAN_PROCESSES: plans run in this many processes, as many more wait (0: in the API)
     plan_timeout_s: float = 60.0  # CALIB_PLAN_TIMEOUT_S: a plan running longer is stopped (503), its process replaced
+    compute_processes: int = 1  # CALIB_COMPUTE_PROCESSES: predict and compensate run in this many processes (0: in
+    # the API); default: half the cores, 1-4
+    compute_timeout_s: float = 60.0  # CALIB_COMPUTE_TIMEOUT_S: a predict or compensate running longer is stopped (503)
     extra: dict = field(default_factory=dict)
 
     @classmethod
@@ -62,9 +73,12 @@ class Settings:
             test_poison=os.environ.get("CALIB_TEST_POISON", "").lower() in ("1", "true", "yes"),
             route_threads=max(1, _int("CALIB_ROUTE_THREADS", 8)),
             switch_interval_ms=min(100.0, max(0.1, _float("CALIB_SWITCH_INTERVAL_MS", 1.0))),
-            parse_processes=max(0, _int("CALIB_PARSE_PROCESSES", 1)),
+            parse_processes=max(0, _int("CALIB_PARSE_PROCESSES", default_processes())),
+            parse_timeout_s=max(0.1, _float("CALIB_PARSE_TIMEOUT_S", 120.0)),
             plan_processes=max(0, _int("CALIB_PLAN_PROCESSES", 1)),
             plan_timeout_s=max(0.1, _float("CALIB_PLAN_TIMEOUT_S", 60.0)),
+            compute_processes=max(0, _int("CALIB_COMPUTE_PROCESSES", default_processes())),
+            compute_timeout_s=max(0.1, _float("CALIB_COMPUTE_TIMEOUT_S", 60.0)),
         )
 
     @property

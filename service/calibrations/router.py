@@ -4,9 +4,10 @@ from fastapi import APIRouter, Body, Depends, Path, Query
 from fastapi.responses import HTMLResponse, Response
 from sqlalchemy.orm import Session
 
-from ..deps import get_read_session, require_writer
+from ..db import Database
+from ..deps import get_db, get_read_session, get_settings, require_writer
 from ..problems import problem_responses
-from . import service
+from . import compute, service
 from .schemas import CalibrationOut, CompensateIn, CompensateOut, PredictIn, PredictOut
 
 router = APIRouter(tags=["calibrations"])
@@ -100,31 +101,34 @@ def get_urdf_side_file(calibration_id: str, s: Session = Depends(get_read_sessio
 
 
 @router.post("/calibrations/{calibration_id}/predict", response_model=PredictOut,
-             dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422),
+             dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422, 503),
              summary="Where the calibrated robot puts the measured point")
-def predict(calibration_id: str, body: PredictIn = Body(..., openapi_examples={"spray7": {
+async def predict(calibration_id: str, body: PredictIn = Body(..., openapi_examples={"spray7": {
         "summary": "one pose of spray7 (mm, deg)",
         "value": {"joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}}}),
-        s: Session = Depends(get_read_session, scope="function")) -> PredictOut:
+        db: Database = Depends(get_db), settings=Depends(get_settings)) -> Response:
     """Joints in the model's units and joint order; positions in the measurement (tracker) frame, model length unit.
-    Optional `tau` (measured joint torques, `tau_<joint>` as in the CSV) is the load of load-driven causes."""
-    c = service.get_calibration(s, calibration_id)
-    positions, unit, notes = service.predict(s, c, body.joints, body.payload, body.temperature, body.timestamp,
-                                             body.target, body.setup, body.tau)
-    return PredictOut(positions=positions, unit=unit, notes=notes)
+    Optional `tau` (measured joint torques, `tau_<joint>` as in the CSV) is the load of load-driven causes.
+    Computed in one of `CALIB_COMPUTE_PROCESSES` processes, a few more waiting: beyond that, and for a request computing
+    longer than `CALIB_COMPUTE_TIMEOUT_S`, the answer is 503 with `Retry-After`."""
+    return Response(await compute.answer(db, settings, calibration_id, compute.predict_json, body),
+                    media_type="application/json")
 
 
 @router.post("/calibrations/{calibration_id}/compensate", response_model=CompensateOut,
-             dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422),
+             dependencies=[Depends(require_writer)], responses=problem_responses(401, 404, 413, 422, 503),
              summary="Joint commands that put the tool on targets, every identified effect included")
-def compensate(calibration_id: str, body: CompensateIn = Body(..., openapi_examples={
+async def compensate(calibration_id: str, body: CompensateIn = Body(..., openapi_examples={
         "targets": {"summary": "one target with its nominal joint solution (spray7, mm, deg)",
                     "value": {"targets": [[-2821.34, 876.61, -16.36]],
                               "seed_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]]}},
         "program": {"summary": "a program as joints only, telescopic J6 locked",
                     "value": {"program_joints": [[2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]],
                               "locked_joints": ["J6"]}}}),
-        s: Session = Depends(get_read_session, scope="function")) -> dict:
+        db: Database = Depends(get_db), settings=Depends(get_settings)) -> Response:
     """Per target, the joint command nearest the seed for which the calibrated model (effects included) puts
-    the tool on the target, within the joint limits; an unreachable target is reported, not a failed batch."""
-    return service.compensate(s, service.get_calibration(s, calibration_id), body)
+    the tool on the target, within the joint limits; an unreachable target is reported, not a failed batch.
+    Computed in one of `CALIB_COMPUTE_PROCESSES` processes, a few more waiting: beyond that, and for a request computing
+    longer than `CALIB_COMPUTE_TIMEOUT_S`, the answer is 503 with `Retry-After`."""
+    return Response(await compute.answer(db, settings, calibration_id, compute.compensate_json, body),
+                    media_type="application/json")

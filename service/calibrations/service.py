@@ -29,7 +29,7 @@ def get_calibration(s: Session, cal_id: str) -> Calibration:
     return get_or_404(s, Calibration, cal_id, "calibration")
 
 
-def restored(model: RobotModel, c: Calibration) -> CalibratedRobot:
+def restored(model: RobotModel, c) -> CalibratedRobot:
     """The stored calibration for prediction; a 409 when it was saved before its causes' meaning changed (a cause
     on a coupled mechanism now acts on its drive), rather than a number it was not fitted to give."""
     try:
@@ -289,11 +289,11 @@ def _tau(model, tau: dict | None, n_rows: int, errors: list) -> tuple[np.ndarray
     return out, max(0, len(found) - MAX_ERRORS)
 
 
-def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temperature=None,
+def predict(model: RobotModel, c, joints: list[list[float]], payload, temperature=None,
             timestamp=None, target=None, setup=None, tau=None) -> tuple[list[list[float]], str, list[str]]:
     """Positions (model length unit) of the calibrated robot at actuated joints (model units), and notes on what
-    they could not take into account (a load-driven cause without a load). tau: `tau_<joint>` -> N*m or N."""
-    model = model_of(s.get(Robot, c.robot_id))
+    they could not take into account (a load-driven cause without a load). tau: `tau_<joint>` -> N*m or N.
+    `c`: the calibration, or anything with its `robot_state` (it crosses to a compute process: compute.py)."""
     n = len(model.actuated)
     errors = [{"field": f"body.joints[{i}]", "value": len(row), "message": f"expected {n} joint values "
                f"({', '.join(model.actuated_names)})"} for i, row in enumerate(joints) if len(row) != n]
@@ -317,9 +317,9 @@ def predict(s: Session, c: Calibration, joints: list[list[float]], payload, temp
     return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit, notes
 
 
-def compensate(s: Session, c: Calibration, body) -> dict:
-    """Joint commands for targets (or for a joints-only program) with the calibrated model and its effects."""
-    model = model_of(s.get(Robot, c.robot_id))
+def compensate(model: RobotModel, c, body) -> dict:
+    """Joint commands for targets (or for a joints-only program) with the calibrated model and its effects.
+    `c`: the calibration, or anything with its `robot_state`."""
     n, names = len(model.actuated), model.actuated_names
     errors = []
     program = body.program_joints is not None

@@ -36,29 +36,33 @@ async def one_file_part(request: Request) -> None:
 
 
 @router.post("/robots/{robot_id}/measurements", status_code=201, response_model=MeasurementSetOut,
-             dependencies=[Depends(require_writer), Depends(one_file_part)], responses=problem_responses(401, 404, 413, 422),
+             dependencies=[Depends(require_writer), Depends(one_file_part)],
+             responses=problem_responses(401, 404, 413, 422, 503),
              summary="Upload a measurement CSV (contract section 2, multipart field `file`)",
              openapi_extra={"requestBody": {"content": {"multipart/form-data": {
                  "schema": {"type": "object", "required": ["file"],
                             "properties": {"file": {"type": "string", "format": "binary"}}},
                  "examples": {"spray7": {"summary": "one pose of spray7", "value": {"file": CSV_EXAMPLE}}}}}}})
-def upload(robot_id: str, response: Response, file: UploadFile = File(..., description="the measurement CSV"),
-           instrument: Instrument | None = Query(None, description="the noise model where the CSV has no `sigma` "
-                                                 "column (calib_core.instruments); default: a laser tracker, and "
-                                                 "the answer's `noise_model` says it was assumed"),
-           limits: Literal["reject", "warn"] = Query("reject", description="joint values outside the model's "
-                                                     "limits: `reject` (422 naming each) or `warn` (accepted; "
-                                                     "the answer's `out_of_limits` gives the extent per joint)"),
-           db: Database = Depends(get_db), settings=Depends(get_settings)) -> MeasurementSetOut:
+async def upload(robot_id: str, response: Response, file: UploadFile = File(..., description="the measurement CSV"),
+                 instrument: Instrument | None = Query(None, description="the noise model where the CSV has no `sigma` "
+                                                       "column (calib_core.instruments); default: a laser tracker, and "
+                                                       "the answer's `noise_model` says it was assumed"),
+                 limits: Literal["reject", "warn"] = Query("reject", description="joint values outside the model's "
+                                                           "limits: `reject` (422 naming each) or `warn` (accepted; "
+                                                           "the answer's `out_of_limits` gives the extent per joint)"),
+                 db: Database = Depends(get_db), settings=Depends(get_settings)) -> MeasurementSetOut:
     """The CSV is checked all-or-nothing against the robot's model (joint names, limits, numbers, timestamps).
     On any problem nothing is stored and the 422 problem document lists every error as
     `{row, column, value, message}` (row = line number in the file). Bodies above the size limit get 413.
-    `instrument` and `limits` are stored with the set and used by every job on it."""
-    raw = file.file.read(settings.max_upload_bytes + 1)
+    `instrument` and `limits` are stored with the set and used by every job on it.
+    The CSV is checked in a parse process: uploads up to 1 MiB in a lane of their own (a small upload never waits
+    behind a large one), larger ones in `CALIB_PARSE_PROCESSES`; a full waiting room, a check running longer than
+    `CALIB_PARSE_TIMEOUT_S` or a parse process that died is a 503 with `Retry-After`, nothing stored."""
+    raw = await file.read(settings.max_upload_bytes + 1)
     if len(raw) > settings.max_upload_bytes:
         raise ProblemError(413, f"the upload exceeds {settings.max_upload_bytes} bytes", kind="too-large")
-    m = service.create_measurement_set(db, robot_id, raw, file.filename, instrument, limits,
-                                       settings.parse_processes)
+    m = await service.create_measurement_set_async(db, robot_id, raw, file.filename, instrument, limits,
+                                                   settings.parse_processes, settings.parse_timeout_s)
     response.headers["Location"] = f"/measurements/{m.id}"
     return MeasurementSetOut.of(m)
 

@@ -4,22 +4,20 @@ from __future__ import annotations
 import csv
 import hashlib
 import logging
-import multiprocessing as mp
-import os
-import threading
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 
+import anyio
+import anyio.to_thread
 import numpy as np
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from calib_core.identify import DISTINCT_DECIMALS
+from calib_core.identify import DISTINCT_DECIMALS, prealign
 from calib_core.io import MeasurementError, Measurements, parse_measurements
 from calib_core.units_check import unit_problems
 
 from ..db import Database
+from ..lanes import Lane, Words
 from ..problems import MAX_ERRORS, ProblemError, get_or_404, not_found
 from ..robots.models import Robot
 from ..robots.service import get_robot, model_of
@@ -98,6 +96,9 @@ def check_upload(raw: bytes, model, instrument: str | None = None, limits: str =
     distinct = len(np.unique(np.round(meas.joints, DISTINCT_DECIMALS), axis=0))
     if distinct < MIN_POSES:
         return {"problem": ("too_few", (meas.n_poses, distinct))}
+    few = setup_problems(model, meas)
+    if few:
+        return {"problem": ("setups", (few,))}
     try:  # issue 33: points or joint columns in another unit than the model's, named before anything is stored
         wrong = unit_problems(model, meas)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):  # a check that cannot judge says nothing
@@ -108,89 +109,111 @@ def check_upload(raw: bytes, model, instrument: str | None = None, limits: str =
     return {"n_poses": meas.n_poses, "out_of_limits": meas.out_of_limits, "columns": _header(raw)}
 
 
-_PROBLEMS = {"invalid": _invalid, "unreadable": _unreadable, "too_few": _too_few, "units": _wrong_units}
+def setup_problems(model, meas: Measurements) -> list[dict]:
+    """Each setup's base pose is placed by a rigid fit of its own poses (calib_core.identify.prealign): a setup with
+    fewer than three distinct measured positions cannot be calibrated. Named at upload (issue 33: one setup per row
+    was accepted and failed only at job time)."""
+    if meas.setup is None:
+        return []
+    try:
+        prealign(model, meas)
+    except ValueError as exc:
+        counts = np.bincount(meas.setup, minlength=meas.n_setups)
+        few = [meas.setup_names[s] for s in range(meas.n_setups) if counts[s] < MIN_POSES]
+        more = (f" ({len(few)} of the {meas.n_setups} setups have fewer than {MIN_POSES} rows: "
+                f"{', '.join(few[:5])}{' ...' if len(few) > 5 else ''})") if few else ""
+        return [{"row": None, "column": "setup", "value": few[0] if few else None,
+                 "message": f"{exc}; each setup has a base pose of its own, placed from at least {MIN_POSES} of its "
+                            f"poses at distinct positions{more}"}]
+    return []
+
+
+def _bad_setups(errors: list[dict]) -> ProblemError:
+    return ProblemError(422, "the CSV's setups cannot be calibrated (see the error); nothing was stored",
+                        kind="invalid-csv", errors=errors, error_count=len(errors), total_errors=len(errors))
+
+
+_PROBLEMS = {"invalid": _invalid, "unreadable": _unreadable, "too_few": _too_few, "units": _wrong_units,
+             "setups": _bad_setups}
+
+
+SMALL_UPLOAD_BYTES = 1024 * 1024
+"""Uploads up to this size are checked in a lane of their own (service/lanes.py): a small upload never waits behind
+a large one (issue 33: six concurrent 19 MB hostile CSVs made a valid 25 KB upload wait 69 s). A 150-pose CSV is about
+25 KB, 5000 poses about 0.6 MB; a CSV that takes seconds to check is megabytes long."""
+SMALL_ROOM = 32
+"""Small uploads waiting for their lane at most (each is checked in milliseconds); more: 503 with Retry-After."""
+LARGE_ROOM_PER_PROCESS = 8
+"""Large uploads waiting at most, per process of their lane; more: 503 with Retry-After (the issue's six concurrent
+19 MB hostile CSVs all wait for one process)."""
 
 
 class _Parsers:
     """The CSV parse processes (CALIB_PARSE_PROCESSES): an upload's CSV is checked there, not in the API process,
     whose GIL the event loop, /health and every other route share (issue 10: parsing was half of it under the
-    red team's load). A pool that broke (a parse process died) is replaced; the upload that saw it gets 503."""
+    red team's load). Two lanes (service/lanes.py): CALIB_PARSE_PROCESSES processes for uploads larger than
+    SMALL_UPLOAD_BYTES, and half as many (at least one) of their own for the smaller ones; in each the smallest CSV waiting is checked first. A check running longer
+    than CALIB_PARSE_TIMEOUT_S is stopped, and a parse process that dies is replaced: either costs its upload a 503
+    with Retry-After, as does a full waiting room."""
 
     def __init__(self):
-        self.lock = threading.Lock()
-        self.pool: ProcessPoolExecutor | None = None
-        self.size = 0
+        words = dict(timeout_env="CALIB_PARSE_TIMEOUT_S", nothing="nothing was stored",
+                     advice="a smaller CSV, or a retry when the server is less busy, is checked faster")
+        self.small = Lane("parse-small", __name__, Words(noun="CSV check", **words))
+        self.large = Lane("parse", __name__, Words(noun="CSV check", **words))
 
-    def get(self, size: int) -> ProcessPoolExecutor:
-        with self.lock:
-            if self.pool is None or self.size != size:
-                if self.pool is not None:
-                    self.pool.shutdown(wait=False, cancel_futures=True)
-                self.pool = ProcessPoolExecutor(size, mp_context=mp.get_context("spawn"),
-                                                initializer=_parser_init)
-                self.size = size
-            return self.pool
+    def configure(self, size: int, timeout_s: float = 120.0) -> None:
+        """`size` processes for large uploads, half as many (at least one) for small ones."""
+        self.small.configure(max(1, (size + 1) // 2), SMALL_ROOM, timeout_s)
+        self.large.configure(size, LARGE_ROOM_PER_PROCESS * size, timeout_s)
 
-    def broken(self, pool: ProcessPoolExecutor) -> None:
-        with self.lock:
-            if self.pool is pool:
-                self.pool = None
-        pool.shutdown(wait=False, cancel_futures=True)
-
-    def warm(self, size: int) -> None:
+    def warm(self, size: int, timeout_s: float = 120.0) -> None:
         """Start the processes and import the parser in them now, not on the first upload."""
         if size > 0:
-            pool = self.get(size)
-            try:
-                for f in [pool.submit(_parser_ready) for _ in range(size)]:
-                    f.result(timeout=120)
-            except Exception:  # noqa: BLE001 - serve anyway: a broken pool is replaced at the next upload
-                log.warning("the CSV parse processes did not start; uploads will try again", exc_info=True)
+            self.configure(size, timeout_s)
+            self.small.warm(self.small.size, SMALL_ROOM, timeout_s)
+            self.large.warm(size, LARGE_ROOM_PER_PROCESS * size, timeout_s)
+
+    def lane(self, raw: bytes, size: int, timeout_s: float) -> Lane:
+        self.configure(size, timeout_s)
+        return self.small if len(raw) <= SMALL_UPLOAD_BYTES else self.large
 
     def shutdown(self) -> None:
-        with self.lock:
-            pool, self.pool = self.pool, None
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        self.small.shutdown()
+        self.large.shutdown()
 
 
 PARSERS = _Parsers()
 
 
-def _parser_init() -> None:
-    import signal
-
-    from ..queue.runner import _watch_parent
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when its parse processes end
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    _watch_parent(os.getppid())  # a server killed outright (SIGKILL) leaves no parse process behind
-
-
-def _parser_ready() -> int:
-    return os.getpid()
-
-
-def checked_upload(raw: bytes, model, instrument: str | None = None, limits: str = "reject",
-                   processes: int = 0) -> dict:
-    """check_upload in a parse process (processes > 0) or here (0); raises the 422 ProblemError it names."""
-    if processes > 0:
-        pool = PARSERS.get(processes)
-        try:
-            out = pool.submit(check_upload, raw, model, instrument, limits).result()
-        except BrokenProcessPool:
-            PARSERS.broken(pool)
-            log.warning("a CSV parse process died; the parse pool is restarted")
-            raise ProblemError(503, "the CSV could not be checked (its parse process died); nothing was stored; "
-                               "try again", kind="unavailable", headers={"Retry-After": "1"}) from None
-    else:
-        out = check_upload(raw, model, instrument, limits)
+def _answer(out: dict) -> dict:
     if "problem" in out:
         kind, args = out["problem"]
         if kind == "unreadable":
             log.info("unreadable CSV: %s", out.get("why"))
         raise _PROBLEMS[kind](*args)
     return out
+
+
+def checked_upload(raw: bytes, model, instrument: str | None = None, limits: str = "reject",
+                   processes: int = 0, timeout_s: float = 120.0) -> dict:
+    """check_upload in a parse process (processes > 0) or here (0); raises the 422 ProblemError it names."""
+    if processes > 0:
+        out = PARSERS.lane(raw, processes, timeout_s).run(check_upload, (raw, model, instrument, limits), len(raw))
+    else:
+        out = check_upload(raw, model, instrument, limits)
+    return _answer(out)
+
+
+async def checked_upload_async(raw: bytes, model, instrument: str | None = None, limits: str = "reject",
+                               processes: int = 0, timeout_s: float = 120.0) -> dict:
+    """checked_upload, waited for on the event loop (no route thread held while the CSV waits for its lane)."""
+    args = (raw, model, instrument, limits)
+    if processes > 0:
+        out = await PARSERS.lane(raw, processes, timeout_s).arun(check_upload, args, len(raw))
+    else:
+        out = await anyio.to_thread.run_sync(check_upload, *args)
+    return _answer(out)
 
 
 def check_filename(filename: str | None) -> str | None:
@@ -211,14 +234,35 @@ def check_filename(filename: str | None) -> str | None:
 
 def create_measurement_set(db: Database, robot_id: str, raw: bytes, filename: str | None,
                            instrument: str | None = None, limits: str = "reject",
-                           parse_processes: int = 0) -> MeasurementSet:
+                           parse_processes: int = 0, parse_timeout_s: float = 120.0) -> MeasurementSet:
     """Parse outside any write transaction (robots are immutable; in a parse process when parse_processes > 0),
     then insert in one short transaction; nothing is stored unless the whole CSV is good.
     `instrument` and `limits` are stored with the set: its jobs re-parse the CSV with them."""
-    with db.read_session() as s:
-        model = model_of(get_robot(s, robot_id))
+    model = robot_model(db, robot_id)
     filename = check_filename(filename)
-    out = checked_upload(raw, model, instrument, limits, parse_processes)
+    out = checked_upload(raw, model, instrument, limits, parse_processes, parse_timeout_s)
+    return store_set(db, robot_id, raw, filename, instrument, limits, out)
+
+
+async def create_measurement_set_async(db: Database, robot_id: str, raw: bytes, filename: str | None,
+                                       instrument: str | None = None, limits: str = "reject",
+                                       parse_processes: int = 0, parse_timeout_s: float = 120.0) -> MeasurementSet:
+    """create_measurement_set for an async route: the database in route threads, the CSV's wait for its parse lane
+    on the event loop (a large CSV waiting holds no route thread)."""
+    model = await anyio.to_thread.run_sync(robot_model, db, robot_id)
+    filename = check_filename(filename)
+    out = await checked_upload_async(raw, model, instrument, limits, parse_processes, parse_timeout_s)
+    return await anyio.to_thread.run_sync(store_set, db, robot_id, raw, filename, instrument, limits, out)
+
+
+def robot_model(db: Database, robot_id: str):
+    with db.read_session() as s:
+        return model_of(get_robot(s, robot_id))
+
+
+def store_set(db: Database, robot_id: str, raw: bytes, filename: str | None, instrument: str | None, limits: str,
+              out: dict) -> MeasurementSet:
+    """The checked CSV stored in one short transaction."""
     m = MeasurementSet(robot_id=robot_id, filename=filename, n_poses=out["n_poses"], columns=out["columns"],
                        size_bytes=len(raw), sha256=hashlib.sha256(raw).hexdigest(), raw=raw,
                        instrument=instrument, limits=limits, out_of_limits=out["out_of_limits"])

@@ -1,7 +1,7 @@
 """Pose planning: which poses to measure, from a stored robot (and measurement set), with calib_core.plan.
 
 The database is read in one short transaction (robot, measurement set, its latest calibration), then the plan is
-computed outside it, in a plan process of its own (pool.py: bounded in number and time, 503 when busy): a diagnosis
+computed outside it, in a plan process of its own (pool.py, a lane: bounded in number and time, 503 when busy): a diagnosis
 plan refits the rival models and takes a few seconds.
 """
 from __future__ import annotations
@@ -25,7 +25,7 @@ from ..measurements.models import MeasurementSet
 from ..measurements.service import parse_or_reject
 from ..problems import ProblemError
 from ..robots.service import get_robot, model_of
-from .pool import PLANNERS
+from . import pool
 from .schemas import PlanIn
 
 AUTO_JOB = 'POST /jobs {"measurement_set_id": "%s", "model": "auto"}'
@@ -110,8 +110,7 @@ def make_plan(db: Database, robot_id: str, body: PlanIn, processes: int = 0, tim
     timeout_s, see pool.py) or here (0)."""
     model, stored, cal = _load(db, robot_id, body)
     if processes > 0:
-        PLANNERS.configure(processes)
-        return PLANNERS.run(compute, (model, stored, cal, body), timeout_s)
+        return pool.configure(processes, timeout_s).run(compute, (model, stored, cal, body))
     return compute(model, stored, cal, body)
 
 

@@ -54,8 +54,8 @@ def test_a_good_upload_gives_the_same_summary_in_a_parse_process(model, csv_text
 
 
 def test_a_parse_process_that_died_costs_one_503_and_is_replaced(model, csv_text):
-    pool = PARSERS.get(1)
-    pids = list(pool._processes)  # noqa: SLF001 - the pool's own processes, to kill one
+    checked_upload(csv_text.encode(), model, processes=1)  # the lanes are configured
+    pids = PARSERS.small.pids()  # a 150-pose CSV is checked in the small uploads' lane
     assert pids and os.getpid() not in pids
     os.kill(pids[0], signal.SIGKILL)
     with pytest.raises(ProblemError) as exc:
@@ -63,5 +63,5 @@ def test_a_parse_process_that_died_costs_one_503_and_is_replaced(model, csv_text
             checked_upload(csv_text.encode(), model, processes=1)
     assert exc.value.status == 503 and exc.value.headers.get("Retry-After")
     assert "nothing was stored" in exc.value.detail
-    assert checked_upload(csv_text.encode(), model, processes=1)["n_poses"] == 150  # a fresh pool
-    assert PARSERS.get(1) is not pool
+    assert checked_upload(csv_text.encode(), model, processes=1)["n_poses"] == 150  # a fresh process
+    assert PARSERS.small.pids() != pids

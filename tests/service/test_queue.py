@@ -174,11 +174,11 @@ from .conftest import PG_URL  # noqa: E402
 TIME_LIMIT_S = 8
 POISON_ENV = dict(CALIB_TEST_POISON=1, CALIB_JOB_TIMEOUT_S=TIME_LIMIT_S, CALIB_WORKER_CONCURRENCY=2,
                   CALIB_POLL_SECONDS=30, CALIB_LEASE_SECONDS=30, CALIB_HEARTBEAT_SECONDS=10, CALIB_PARSE_PROCESSES=0,
-                  CALIB_PLAN_PROCESSES=0)
+                  CALIB_PLAN_PROCESSES=0, CALIB_COMPUTE_PROCESSES=0)
 """A server whose jobs can crash or spin on demand (CSV comment markers, see service/queue/runner.py). Its
 worker polls only every 30 s and heartbeats every 10 s: anything faster than that is a wake-up or a progress
-write, not the poll. Its uploads are parsed and its plans made in the API process (no parse or plan process): every
-process it spawns is a job process (job_processes)."""
+write, not the poll. Its uploads are parsed, its plans made and its predictions computed in the API process (no parse,
+plan or compute process): every process it spawns is a job process (job_processes)."""
 
 
 def marked(csv_text: str, marker: str) -> str:
