@@ -92,7 +92,7 @@ import numpy as np
 from .frames import Link, fold_links, rot_x, rot_y, rot_z
 from .io import NUMBER
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, ModelError, parse_model
-from .urdf_xml import MOVABLE, XACRO_HINT, UrdfError, _decode, _Joint, _numbers, _one, _parse_joints, _read, _where
+from .urdf_xml import MOVABLE, XACRO_HINT, UrdfError, _decode, _Joint, _numbers, _one, _parse_joints, _read, _rpy, _where
 
 CONTINUOUS_LIMIT_RAD = 2.0 * math.pi
 """Limits written for a URDF ``continuous`` joint: one turn each way."""
@@ -186,6 +186,9 @@ def _default_target(children, base) -> str:
         if not kids and ln != base:
             leaves.append(ln)
         stack.extend(j.child for j in kids)
+    if not leaves:
+        raise UrdfError([{"field": "joint", "value": None, "message": f"the URDF has no joint below the base link "
+                          f"{base!r}: there is nothing to calibrate (a model needs at least one joint)"}])
     if len(leaves) != 1:
         raise UrdfError([{"field": "target", "value": sorted(leaves), "message":
                           f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(sorted(leaves))}); "
@@ -252,7 +255,7 @@ def _link_mass(el: ET.Element, name: str, scale: float, errors: list):
         return None
     o = inertial.find("origin")
     xyz = _numbers(errors, o, "xyz", f"{where}/origin", 3, (0.0, 0.0, 0.0))
-    rpy = _numbers(errors, o, "rpy", f"{where}/origin", 3, (0.0, 0.0, 0.0))  # checked; the COM needs no turn
+    rpy = _rpy(errors, o, f"{where}/origin")  # checked; the COM needs no turn
     if xyz is None or rpy is None:
         return None
     return m, xyz * scale

@@ -86,6 +86,20 @@ def _numbers(errors, el, attr, where, n, default):
     return np.array(out, float)
 
 
+MAX_RPY_RAD = math.radians(MAX_REVOLUTE_DEG)
+"""|roll|, |pitch|, |yaw| of an <origin>: 100 turns (issue 33: rpy="1e300 0 0" was taken, an angle no sine can read)."""
+
+
+def _rpy(errors, o, where):
+    """An <origin>'s rpy: three finite numbers, each within MAX_RPY_RAD, or None (the error naming it added)."""
+    rpy = _numbers(errors, o, "rpy", where, 3, (0.0, 0.0, 0.0))
+    if rpy is not None and not np.abs(rpy).max() <= MAX_RPY_RAD:
+        errors.append({"field": f"{where}/@rpy", "value": o.get("rpy")[:80],
+                       "message": f"implausible: each angle must be at most {MAX_RPY_RAD:.1f} rad (100 turns)"})
+        return None
+    return rpy
+
+
 def _one(errors, el, attr, where):
     v = _numbers(errors, el, attr, where, 1, None)
     return None if v is None else float(v[0])
@@ -250,7 +264,7 @@ def _parse_joints(root: ET.Element):
             errors.append({"field": f"{where}/origin/@xyz", "value": o.get("xyz")[:80],
                            "message": f"implausible: each component must be at most {MAX_LENGTH_M:g} m"})
             xyz = None
-        rpy = _numbers(errors, o, "rpy", f"{where}/origin", 3, (0.0, 0.0, 0.0))
+        rpy = _rpy(errors, o, f"{where}/origin")
         axis = _numbers(errors, el.find("axis"), "xyz", f"{where}/axis", 3, (1.0, 0.0, 0.0))  # URDF default: x
         if axis is not None and jtype in MOVABLE:
             nrm = float(np.linalg.norm(axis))
