@@ -13,6 +13,11 @@ Every client is a thread with its own keep-alive `http.client` connection and lo
 - jobs: `geometric` and `auto` on good sets, cancels (`POST /jobs/{id}/cancel` and `DELETE /jobs/{id}`), reads;
 - calibrations: JSON, the report (plain and `?inline=true`), plots, predict (good, and 100k rows of "x" to a
   calibration that does not exist);
+- issue 33's inputs: URDFs with rpy=1e300 and with nothing in them, a CSV of one setup per row, predicts of
+  10,000 rows and compensates of 500 targets on real calibrations, 50-pose plans; and, at set times, a burst of six
+  concurrent 19 MB hostile CSVs (duplicated point ids: seconds each to check) with the good uploads timed while they
+  are checked, and three 90 MB uploads from urllib (no `Expect`), whose 413 must be read (`--no-issue33` leaves them
+  all out, for the issue-10 load alone);
 - plus a dedicated /health poller in a process of its own (so the load generator's GIL does not inflate it).
 
 Measured: requests and status codes per kind, any 5xx (first bodies printed), transport errors (no answer),
@@ -227,6 +232,11 @@ def build_inputs(max_upload: int) -> dict:
     row = (ls[1] + "\n").encode()
     big = ls[0].encode() + b"\n" + row * ((max_upload + 1024 * 1024) // len(row) + 1)
     joints_good = [[float(v) for v in ln.split(",")[1:8]] for ln in ls[1:21]]
+    joints_10k = [[float(v) for v in ln.split(",")[1:8]] for ln in (ls[1:] * 67)[:10_000]]
+    targets_500 = [[float(v) for v in ln.split(",")[8:11]] for ln in (ls[1:] * 4)[:500]]
+    seeds_500 = [[float(v) for v in ln.split(",")[1:8]] for ln in (ls[1:] * 4)[:500]]
+    own_setups = "\n".join([ls[0] + ",setup"] + [f"{ln},S{i:03d}" for i, ln in enumerate(ls[1:])]) + "\n"
+    dup_19mb = (ls[0] + "\n" + "\n".join(ls[1:] * (19_000_000 // len(c))) + "\n").encode()
     return {
         "model": model,
         "good_csvs": [multipart("good.csv", x.encode()) for x in good_csvs],
@@ -235,7 +245,27 @@ def build_inputs(max_upload: int) -> dict:
         "oversized": multipart("huge.csv", big),
         "predict_hostile": json.dumps({"joints": [["x"]] * 100_000}).encode(),
         "predict_good": json.dumps({"joints": joints_good}).encode(),
+        "predict_10k": json.dumps({"joints": joints_10k}).encode(),
+        "compensate_500": json.dumps({"targets": targets_500, "seed_joints": seeds_500}).encode(),
+        "plan_50": json.dumps({"n_poses": 50, "purpose": "geometric"}).encode(),
+        "hostile_urdfs": {"rpy=1e300": URDF.replace('rpy="0 0 0"', 'rpy="1e300 0 0"', 1).encode(),
+                          "no link": b'<robot name="empty"/>', "a link, no joint": b'<robot name="one"><link name="a"/>'
+                                                                                    b'</robot>'},
+        "own_setups": multipart("setups.csv", own_setups.encode()),
+        "hostile_19mb": multipart("dup19.csv", dup_19mb),
+        "body_90mb": multipart("huge90.csv", (ls[0] + "\n").encode() + row * (90_000_000 // len(row) + 1)),
     }
+
+
+URDF = """<?xml version="1.0"?>
+<robot name="two">
+  <link name="base"/><link name="l1"/><link name="tip"/>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><origin xyz="0 0 0.3" rpy="0 0 0"/>
+    <axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="10" velocity="1"/></joint>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="tip"/><origin xyz="0.4 0 0" rpy="0 0 0"/>
+    <axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="10" velocity="1"/></joint>
+</robot>
+"""
 
 
 # ---------------------------------------------------------------- the load
@@ -288,8 +318,20 @@ MIX = {
     "GET /robots/{id}": 1,
     "GET /robots?limit=20": 0.5,
 }
+MIX_33 = {  # issue 33's inputs in the mix (--no-issue33 leaves them out)
+    "POST /robots URDF (hostile: rpy=1e300, empty)": 0.5,
+    "POST measurements (one setup per row)": 0.5,
+    "POST predict 10k rows": 0.3,
+    "POST compensate 500 targets": 0.3,
+    "POST plan 50 poses": 0.1,
+}
+EVENTS_33 = ("POST measurements (19 MB hostile, burst of 6)", "POST measurements (good, during the burst)",
+             "POST 90 MB upload (urllib, no Expect)")
+"""Kinds of the timed events (Events); listed in the report after the mix."""
 HOSTILE_KINDS = {"POST /robots (hostile)", "POST measurements (hostile)", "POST measurements (oversized, no Expect)",
-                 "POST predict 100k x to a missing id"}
+                 "POST predict 100k x to a missing id", "POST /robots URDF (hostile: rpy=1e300, empty)",
+                 "POST measurements (one setup per row)", "POST measurements (19 MB hostile, burst of 6)",
+                 "POST 90 MB upload (urllib, no Expect)"}
 # kind: (the Shared list of accepted ids it reads, path) for the kinds that are one GET of one such id
 GET_ONE = {
     "GET /calibrations/{id}": ("calibrations", "/calibrations/{}"),
@@ -402,8 +444,89 @@ class Client(threading.Thread):
                           label="100k x")
             elif kind == "GET /robots?limit=20":
                 self.call(kind, "GET", f"/robots?limit=20&offset={rng.randrange(0, max(1, len(sh.robots)))}")
+            elif kind == "POST /robots URDF (hostile: rpy=1e300, empty)":
+                label = rng.choice(list(inp["hostile_urdfs"]))
+                self.call(kind, "POST", "/robots", inp["hostile_urdfs"][label], {"Content-Type": "application/xml"},
+                          label=label)
+            elif kind == "POST measurements (one setup per row)":
+                body, h = inp["own_setups"]
+                self.call(kind, "POST", f"/robots/{self.pick(sh.robots)}/measurements", body, h, label="setups")
+            elif kind == "POST predict 10k rows":
+                self.call(kind, "POST", f"/calibrations/{self.pick(sh.calibrations)}/predict", inp["predict_10k"], J)
+            elif kind == "POST compensate 500 targets":
+                self.call(kind, "POST", f"/calibrations/{self.pick(sh.calibrations)}/compensate",
+                          inp["compensate_500"], J)
+            elif kind == "POST plan 50 poses":
+                self.call(kind, "POST", f"/robots/{self.pick(sh.robots)}/plan", inp["plan_50"], J)
         if self.conn is not None:
             self.conn.close()
+
+
+class Events(threading.Thread):
+    """Issue 33's timed inputs: at 5 s a burst of six concurrent 19 MB hostile CSVs, with a good 150-pose upload
+    every 0.5 s while they are checked (each timed: a small upload must not wait behind them); at 20, 35 and 50 s of
+    the load (those within it) a 90 MB upload from urllib, which sends its whole body before it reads (its 413 must
+    arrive, not a reset)."""
+
+    def __init__(self, port: int, inputs: dict, sh: Shared, t0: float, seconds: float, timeout: float):
+        super().__init__(daemon=True)
+        self.port, self.inp, self.sh, self.t0, self.seconds, self.timeout = port, inputs, sh, t0, seconds, timeout
+
+    def one(self, kind: str, body: bytes, headers: dict, label: str) -> None:
+        c = Client(0, self.port, self.inp, self.sh, 0, self.timeout)
+        st, b = c.call(kind, "POST", f"/robots/{self.sh.robots[0]}/measurements", body, headers, label=label)
+        if c.conn is not None:
+            c.conn.close()
+        if st == 201:
+            with self.sh.lock:
+                self.sh.sets.append(json.loads(b)["id"])
+
+    def urllib_90mb(self) -> None:
+        import urllib.error
+        import urllib.request
+
+        kind = EVENTS_33[2]
+        body, h = self.inp["body_90mb"]
+        req = urllib.request.Request(f"http://127.0.0.1:{self.port}/robots/{self.sh.robots[0]}/measurements",
+                                     data=body, headers=h, method="POST")
+        t = time.perf_counter()
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout) as r:
+                st, data = r.status, r.read()
+        except urllib.error.HTTPError as e:
+            st, data = e.code, e.read()
+        except OSError as exc:
+            self.sh.record(kind, None, time.perf_counter() - t, err=f"90 MB {exc!r}")
+            return
+        self.sh.record(kind, st, time.perf_counter() - t, data)
+        if 200 <= st < 300:
+            with self.sh.lock:
+                self.sh.hostile_accepted.append(f"{kind} -> {st}")
+
+    def run(self) -> None:
+        def at(s: float) -> bool:
+            left = self.t0 + s - time.monotonic()
+            if s >= self.seconds:
+                return False
+            time.sleep(max(0.0, left))
+            return True
+
+        if at(5):
+            body, h = self.inp["hostile_19mb"]
+            burst = [threading.Thread(target=self.one, args=(EVENTS_33[0], body, h, "19 MB"), daemon=True)
+                     for _ in range(6)]
+            for b in burst:
+                b.start()
+            time.sleep(0.5)
+            good, gh = self.inp["good_csvs"][1]
+            while any(b.is_alive() for b in burst) and time.monotonic() < self.t0 + self.seconds:
+                threading.Thread(target=self.one, args=(EVENTS_33[1], good, gh, "good"), daemon=True).start()
+                time.sleep(0.5)
+            for b in burst:
+                b.join(self.timeout)
+        for s in (20, 35, 50):
+            if at(s):
+                self.urllib_90mb()
 
 
 # ---------------------------------------------------------------- checks after the restart
@@ -481,12 +604,15 @@ def main() -> None:
                     help="leave out the kinds whose name contains TEXT (repeatable), to attribute a miss")
     ap.add_argument("--server-env", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting for the server, e.g. CALIB_ROUTE_THREADS=4 (repeatable)")
+    ap.add_argument("--no-issue33", action="store_true", help="leave out issue 33's inputs (the issue-10 load alone)")
     ap.add_argument("--_health", nargs=4, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a._health:
         health_poller(int(a._health[0]), float(a._health[1]), a._health[2], float(a._health[3]))
         return
     SERVER_ENV.update(kv.split("=", 1) for kv in a.server_env)
+    if not a.no_issue33:
+        MIX.update(MIX_33)
 
     for kind in list(MIX):
         if any(x in kind for x in a.skip):
@@ -535,13 +661,14 @@ def main() -> None:
         t0 = time.monotonic()
         load = [os.getloadavg()[0]]
         clients = [Client(k, port, inp, sh, t0 + a.seconds, a.timeout) for k in range(a.clients)]
-        for c in clients:
+        events = None if a.no_issue33 else Events(port, inp, sh, t0, a.seconds, a.timeout)
+        for c in clients + ([events] if events else []):
             c.start()
-        for c in clients:
+        for c in clients + ([events] if events else []):
             c.join(a.seconds + a.timeout + 60)
         wall = time.monotonic() - t0
         load.append(os.getloadavg()[0])
-        stuck = sum(c.is_alive() for c in clients)
+        stuck = sum(c.is_alive() for c in clients + ([events] if events else []))
         hp.wait(a.seconds + 120)
         time.sleep(1.0)
         rss.halt.set()
@@ -584,7 +711,7 @@ def main() -> None:
     print("| kind | requests | status codes | no answer | p50 ms | p99 ms |")
     print("|---|---:|---|---:|---:|---:|")
     n5, ntr = 0, 0
-    for kind in MIX:
+    for kind in [*MIX, *EVENTS_33]:
         s = sh.stats.get(kind)
         if not s:
             continue
