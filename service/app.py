@@ -94,9 +94,10 @@ def create_app(settings: Settings | None = None, *, dispatcher: bool | None = No
         # long as they are (CALIB_WARMUP_TIMEOUT_S in all): on a busy machine the server serves meanwhile, and a call
         # that comes before its process is ready waits for it (not counted in its time bound)
         if settings.parse_processes > 0:  # the CSV checks (service/measurements)
-            warming.append(asyncio.to_thread(PARSERS.warm, settings.parse_processes, settings.parse_timeout_s))
+            warming.append(asyncio.to_thread(PARSERS.warm, settings.parse_processes, settings.parse_timeout_s,
+                                             settings.parse_room_bytes))
         if settings.plan_processes > 0:  # plans (service/plans)
-            warming.append(asyncio.to_thread(PLANNERS.warm, settings.plan_processes, settings.plan_processes,
+            warming.append(asyncio.to_thread(PLANNERS.warm, settings.plan_processes, settings.plan_room,
                                              settings.plan_timeout_s))
         if settings.compute_processes > 0:  # predict and compensate (service/calibrations/compute.py)
             warming.append(asyncio.to_thread(COMPUTERS.warm, settings.compute_processes,

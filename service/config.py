@@ -19,6 +19,12 @@ def default_processes() -> int:
     return max(1, min(4, (os.cpu_count() or 2) // 2))
 
 
+PARSE_ROOM_UPLOADS = 8
+"""CALIB_PARSE_ROOM_BYTES' default: this many uploads of the largest size allowed (service/measurements/service.py)."""
+PLAN_ROOM_PER_PROCESS = 4
+"""CALIB_PLAN_ROOM's default: this many plans waiting per plan process (service/plans/pool.py)."""
+
+
 @dataclass(frozen=True)
 class Settings:
     database_url: str = "sqlite:///./calib.db"
@@ -43,7 +49,11 @@ class Settings:
     parse_processes: int = 1  # CALIB_PARSE_PROCESSES: large uploads' CSVs are checked in this many processes, small
     # ones in one of their own (0: in the API); default: half the cores, 1-4 (lanes.default_processes)
     parse_timeout_s: float = 120.0  # CALIB_PARSE_TIMEOUT_S: a CSV check running longer is stopped (503)
-    plan_processes: int = 1  # CALIB_PLAN_PROCESSES: plans run in this many processes, as many more wait (0: in the API)
+    parse_room_bytes: int = PARSE_ROOM_UPLOADS * 20 * 1024 * 1024  # CALIB_PARSE_ROOM_BYTES: large uploads (over 1 MiB)
+    # waiting for a parse process hold at most this many bytes; more: 503 (default: 8 x CALIB_MAX_UPLOAD_BYTES)
+    plan_processes: int = 1  # CALIB_PLAN_PROCESSES: plans run in this many processes (0: in the API)
+    plan_room: int = PLAN_ROOM_PER_PROCESS  # CALIB_PLAN_ROOM: plans waiting for a plan process at most; more: 503
+    # (default: 4 per plan process)
     plan_timeout_s: float = 60.0  # CALIB_PLAN_TIMEOUT_S: a plan running longer is stopped (503), its process replaced
     compute_processes: int = 1  # CALIB_COMPUTE_PROCESSES: predict and compensate run in this many processes (0: in
     # the API); default: half the cores, 1-4
@@ -53,11 +63,13 @@ class Settings:
     @classmethod
     def from_env(cls) -> "Settings":
         lease = _float("CALIB_LEASE_SECONDS", 30.0)
+        max_upload = _int("CALIB_MAX_UPLOAD_BYTES", 20 * 1024 * 1024)
+        plan_processes = max(0, _int("CALIB_PLAN_PROCESSES", 1))
         return cls(
             database_url=os.environ.get("CALIB_DATABASE_URL", "sqlite:///./calib.db"),
             api_token=os.environ.get("CALIB_API_TOKEN") or None,
             api_token_set="CALIB_API_TOKEN" in os.environ,
-            max_upload_bytes=_int("CALIB_MAX_UPLOAD_BYTES", 20 * 1024 * 1024),
+            max_upload_bytes=max_upload,
             lease_seconds=lease,
             heartbeat_seconds=_float("CALIB_HEARTBEAT_SECONDS", max(0.2, lease / 3)),
             poll_seconds=_float("CALIB_POLL_SECONDS", 0.5),
@@ -75,7 +87,9 @@ class Settings:
             switch_interval_ms=min(100.0, max(0.1, _float("CALIB_SWITCH_INTERVAL_MS", 1.0))),
             parse_processes=max(0, _int("CALIB_PARSE_PROCESSES", default_processes())),
             parse_timeout_s=max(0.1, _float("CALIB_PARSE_TIMEOUT_S", 120.0)),
-            plan_processes=max(0, _int("CALIB_PLAN_PROCESSES", 1)),
+            parse_room_bytes=max(1, _int("CALIB_PARSE_ROOM_BYTES", PARSE_ROOM_UPLOADS * max(1, max_upload))),
+            plan_processes=plan_processes,
+            plan_room=max(0, _int("CALIB_PLAN_ROOM", PLAN_ROOM_PER_PROCESS * plan_processes)),
             plan_timeout_s=max(0.1, _float("CALIB_PLAN_TIMEOUT_S", 60.0)),
             compute_processes=max(0, _int("CALIB_COMPUTE_PROCESSES", default_processes())),
             compute_timeout_s=max(0.1, _float("CALIB_COMPUTE_TIMEOUT_S", 60.0)),

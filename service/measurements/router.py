@@ -56,13 +56,15 @@ async def upload(robot_id: str, response: Response, file: UploadFile = File(...,
     `{row, column, value, message}` (row = line number in the file). Bodies above the size limit get 413.
     `instrument` and `limits` are stored with the set and used by every job on it.
     The CSV is checked in a parse process: uploads up to 1 MiB in a lane of their own (a small upload never waits
-    behind a large one), larger ones in `CALIB_PARSE_PROCESSES`; a full waiting room, a check running longer than
+    behind a large one), larger ones in `CALIB_PARSE_PROCESSES`, with a waiting room of `CALIB_PARSE_ROOM_BYTES`
+    bytes (default 8 uploads of the maximum size); a full waiting room, a check running longer than
     `CALIB_PARSE_TIMEOUT_S` or a parse process that died is a 503 with `Retry-After`, nothing stored."""
     raw = await file.read(settings.max_upload_bytes + 1)
     if len(raw) > settings.max_upload_bytes:
         raise ProblemError(413, f"the upload exceeds {settings.max_upload_bytes} bytes", kind="too-large")
     m = await service.create_measurement_set_async(db, robot_id, raw, file.filename, instrument, limits,
-                                                   settings.parse_processes, settings.parse_timeout_s)
+                                                   settings.parse_processes, settings.parse_timeout_s,
+                                                   settings.parse_room_bytes)
     response.headers["Location"] = f"/measurements/{m.id}"
     return MeasurementSetOut.of(m)
 

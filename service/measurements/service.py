@@ -16,6 +16,7 @@ from calib_core.identify import DISTINCT_DECIMALS, prealign
 from calib_core.io import MeasurementError, Measurements, parse_measurements
 from calib_core.units_check import unit_problems
 
+from ..config import PARSE_ROOM_UPLOADS
 from ..db import Database
 from ..lanes import Lane, Words
 from ..problems import MAX_ERRORS, ProblemError, get_or_404, not_found
@@ -143,39 +144,49 @@ a large one (issue 33: six concurrent 19 MB hostile CSVs made a valid 25 KB uplo
 25 KB, 5000 poses about 0.6 MB; a CSV that takes seconds to check is megabytes long."""
 SMALL_ROOM = 32
 """Small uploads waiting for their lane at most (each is checked in milliseconds); more: 503 with Retry-After."""
-LARGE_ROOM_PER_PROCESS = 8
-"""Large uploads waiting at most, per process of their lane; more: 503 with Retry-After (the issue's six concurrent
-19 MB hostile CSVs all wait for one process)."""
+LARGE_ROOM_UPLOADS = PARSE_ROOM_UPLOADS
+"""The large uploads' waiting room is counted in bytes (CALIB_PARSE_ROOM_BYTES, service/lanes.py), by default this many
+uploads of the largest size allowed (CALIB_MAX_UPLOAD_BYTES): 8 x 20 MiB = 160 MiB, whatever the number of processes.
+An upload is admitted while the uploads waiting hold at most that many bytes with it; more: 503 with Retry-After
+(each is over SMALL_UPLOAD_BYTES: fewer than the room / 1 MiB of them wait, 160 by default).
+Counting uploads (8 per process, before) refused the red team's 1.8 MB hostile CSVs while six 19 MB ones held the room
+(issue 33); by bytes, six 19 MB CSVs waiting (114 MB) leave room for 50 MB more, and the smallest is checked
+next. Memory: the waiting uploads' bytes are held in the API process (read whole by the route before it asks for the
+lane), so the room bounds them; the time the last one waits is about the checking time of the bytes ahead of it."""
+DEFAULT_ROOM_BYTES = LARGE_ROOM_UPLOADS * 20 * 1024 * 1024
+"""The byte budget for the default maximum upload (service.config.Settings), for callers that name none."""
 
 
 class _Parsers:
     """The CSV parse processes (CALIB_PARSE_PROCESSES): an upload's CSV is checked there, not in the API process,
     whose GIL the event loop, /health and every other route share (issue 10: parsing was half of it under the
     red team's load). Two lanes (service/lanes.py): CALIB_PARSE_PROCESSES processes for uploads larger than
-    SMALL_UPLOAD_BYTES, and half as many (at least one) of their own for the smaller ones; in each the smallest CSV waiting is checked first. A check running longer
-    than CALIB_PARSE_TIMEOUT_S is stopped, and a parse process that dies is replaced: either costs its upload a 503
-    with Retry-After, as does a full waiting room."""
+    SMALL_UPLOAD_BYTES, with a waiting room of CALIB_PARSE_ROOM_BYTES bytes (LARGE_ROOM_UPLOADS), and half as many
+    (at least one) of their own for the smaller ones, SMALL_ROOM of them waiting; in each the smallest CSV waiting is
+    checked first. A check running longer than CALIB_PARSE_TIMEOUT_S is stopped, and a parse process that dies is
+    replaced: either costs its upload a 503 with Retry-After, as does a full waiting room."""
 
     def __init__(self):
         words = dict(timeout_env="CALIB_PARSE_TIMEOUT_S", nothing="nothing was stored",
                      advice="a smaller CSV, or a retry when the server is less busy, is checked faster")
         self.small = Lane("parse-small", __name__, Words(noun="CSV check", **words))
-        self.large = Lane("parse", __name__, Words(noun="CSV check", **words))
+        self.large = Lane("parse", __name__, Words(noun="CSV check", room_env="CALIB_PARSE_ROOM_BYTES", **words))
 
-    def configure(self, size: int, timeout_s: float = 120.0) -> None:
-        """`size` processes for large uploads, half as many (at least one) for small ones."""
+    def configure(self, size: int, timeout_s: float = 120.0, room_bytes: int = DEFAULT_ROOM_BYTES) -> None:
+        """`size` processes for large uploads, `room_bytes` bytes of them waiting; half as many processes (at least one)
+        for small ones, SMALL_ROOM of them waiting."""
         self.small.configure(max(1, (size + 1) // 2), SMALL_ROOM, timeout_s)
-        self.large.configure(size, LARGE_ROOM_PER_PROCESS * size, timeout_s)
+        self.large.configure(size, 0, timeout_s, max(1, room_bytes))
 
-    def warm(self, size: int, timeout_s: float = 120.0) -> None:
+    def warm(self, size: int, timeout_s: float = 120.0, room_bytes: int = DEFAULT_ROOM_BYTES) -> None:
         """Start the processes and import the parser in them now, not on the first upload."""
         if size > 0:
-            self.configure(size, timeout_s)
+            self.configure(size, timeout_s, room_bytes)
             self.small.warm(self.small.size, SMALL_ROOM, timeout_s)
-            self.large.warm(size, LARGE_ROOM_PER_PROCESS * size, timeout_s)
+            self.large.warm(size, 0, timeout_s, max(1, room_bytes))
 
-    def lane(self, raw: bytes, size: int, timeout_s: float) -> Lane:
-        self.configure(size, timeout_s)
+    def lane(self, raw: bytes, size: int, timeout_s: float, room_bytes: int = DEFAULT_ROOM_BYTES) -> Lane:
+        self.configure(size, timeout_s, room_bytes)
         return self.small if len(raw) <= SMALL_UPLOAD_BYTES else self.large
 
     def shutdown(self) -> None:
@@ -196,21 +207,23 @@ def _answer(out: dict) -> dict:
 
 
 def checked_upload(raw: bytes, model, instrument: str | None = None, limits: str = "reject",
-                   processes: int = 0, timeout_s: float = 120.0) -> dict:
+                   processes: int = 0, timeout_s: float = 120.0, room_bytes: int = DEFAULT_ROOM_BYTES) -> dict:
     """check_upload in a parse process (processes > 0) or here (0); raises the 422 ProblemError it names."""
     if processes > 0:
-        out = PARSERS.lane(raw, processes, timeout_s).run(check_upload, (raw, model, instrument, limits), len(raw))
+        out = PARSERS.lane(raw, processes, timeout_s, room_bytes).run(
+            check_upload, (raw, model, instrument, limits), len(raw), len(raw))
     else:
         out = check_upload(raw, model, instrument, limits)
     return _answer(out)
 
 
 async def checked_upload_async(raw: bytes, model, instrument: str | None = None, limits: str = "reject",
-                               processes: int = 0, timeout_s: float = 120.0) -> dict:
+                               processes: int = 0, timeout_s: float = 120.0,
+                               room_bytes: int = DEFAULT_ROOM_BYTES) -> dict:
     """checked_upload, waited for on the event loop (no route thread held while the CSV waits for its lane)."""
     args = (raw, model, instrument, limits)
     if processes > 0:
-        out = await PARSERS.lane(raw, processes, timeout_s).arun(check_upload, args, len(raw))
+        out = await PARSERS.lane(raw, processes, timeout_s, room_bytes).arun(check_upload, args, len(raw), len(raw))
     else:
         out = await anyio.to_thread.run_sync(check_upload, *args)
     return _answer(out)
@@ -234,24 +247,27 @@ def check_filename(filename: str | None) -> str | None:
 
 def create_measurement_set(db: Database, robot_id: str, raw: bytes, filename: str | None,
                            instrument: str | None = None, limits: str = "reject",
-                           parse_processes: int = 0, parse_timeout_s: float = 120.0) -> MeasurementSet:
+                           parse_processes: int = 0, parse_timeout_s: float = 120.0,
+                           parse_room_bytes: int = DEFAULT_ROOM_BYTES) -> MeasurementSet:
     """Parse outside any write transaction (robots are immutable; in a parse process when parse_processes > 0),
     then insert in one short transaction; nothing is stored unless the whole CSV is good.
     `instrument` and `limits` are stored with the set: its jobs re-parse the CSV with them."""
     model = robot_model(db, robot_id)
     filename = check_filename(filename)
-    out = checked_upload(raw, model, instrument, limits, parse_processes, parse_timeout_s)
+    out = checked_upload(raw, model, instrument, limits, parse_processes, parse_timeout_s, parse_room_bytes)
     return store_set(db, robot_id, raw, filename, instrument, limits, out)
 
 
 async def create_measurement_set_async(db: Database, robot_id: str, raw: bytes, filename: str | None,
                                        instrument: str | None = None, limits: str = "reject",
-                                       parse_processes: int = 0, parse_timeout_s: float = 120.0) -> MeasurementSet:
+                                       parse_processes: int = 0, parse_timeout_s: float = 120.0,
+                                       parse_room_bytes: int = DEFAULT_ROOM_BYTES) -> MeasurementSet:
     """create_measurement_set for an async route: the database in route threads, the CSV's wait for its parse lane
     on the event loop (a large CSV waiting holds no route thread)."""
     model = await anyio.to_thread.run_sync(robot_model, db, robot_id)
     filename = check_filename(filename)
-    out = await checked_upload_async(raw, model, instrument, limits, parse_processes, parse_timeout_s)
+    out = await checked_upload_async(raw, model, instrument, limits, parse_processes, parse_timeout_s,
+                                     parse_room_bytes)
     return await anyio.to_thread.run_sync(store_set, db, robot_id, raw, filename, instrument, limits, out)
 
 

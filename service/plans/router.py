@@ -15,7 +15,7 @@ router = APIRouter(tags=["plans"])
              responses=problem_responses(401, 404, 413, 422, 503),
              summary="Which poses to measure: for the geometry, or to tell look-alike causes apart (contract "
                      "section 5)")
-def create_plan(robot_id: str, body: PlanIn = Body(..., openapi_examples={
+async def create_plan(robot_id: str, body: PlanIn = Body(..., openapi_examples={
         "geometric": {"summary": "50 poses for the geometric calibration", "value": {"n_poses": 50,
                                                                                    "purpose": "geometric"}},
         "diagnosis": {"summary": "30 poses that split the look-alike causes of a measured set",
@@ -28,6 +28,8 @@ def create_plan(robot_id: str, body: PlanIn = Body(..., openapi_examples={
     maximises the expected held-out difference between each pair of look-alike causes that the newest `auto`
     calibration of `measurement_set_id` could not tell apart (T-optimal), so that measuring them settles it.
     `observability` compares the plan with random visible poses of the same number. Nothing is stored.
-    A plan runs in one of `CALIB_PLAN_PROCESSES` processes, at most that many more waiting: beyond that, and for a
-    plan running longer than `CALIB_PLAN_TIMEOUT_S`, the answer is 503 with `Retry-After`."""
-    return service.make_plan(db, robot_id, body, settings.plan_processes, settings.plan_timeout_s)
+    A plan runs in one of `CALIB_PLAN_PROCESSES` processes, at most `CALIB_PLAN_ROOM` more waiting (default 4 per
+    process): beyond that, and for a plan running longer than `CALIB_PLAN_TIMEOUT_S`, the answer is 503 with
+    `Retry-After`."""
+    return await service.make_plan_async(db, robot_id, body, settings.plan_processes, settings.plan_timeout_s,
+                                         settings.plan_room)

@@ -10,6 +10,7 @@ import csv
 import io
 from typing import NamedTuple
 
+import anyio.to_thread
 import numpy as np
 from sqlalchemy import select
 
@@ -104,14 +105,25 @@ def _rivals(model: RobotModel, meas: Measurements, cal: _Cal, robot: CalibratedR
     return pairs
 
 
-def make_plan(db: Database, robot_id: str, body: PlanIn, processes: int = 0, timeout_s: float = 60.0) -> dict:
+def make_plan(db: Database, robot_id: str, body: PlanIn, processes: int = 0, timeout_s: float = 60.0,
+              room: int | None = None) -> dict:
     """The plan answer (contract section 5): poses in model units, actuated joint order, and their observability.
-    The database is read here; the plan is computed in a plan process (processes > 0, bounded in number and
-    timeout_s, see pool.py) or here (0)."""
+    The database is read here; the plan is computed in a plan process (processes > 0, bounded in number, `room`
+    waiting and timeout_s, see pool.py) or here (0)."""
     model, stored, cal = _load(db, robot_id, body)
     if processes > 0:
-        return pool.configure(processes, timeout_s).run(compute, (model, stored, cal, body))
+        return pool.configure(processes, timeout_s, room).run(compute, (model, stored, cal, body))
     return compute(model, stored, cal, body)
+
+
+async def make_plan_async(db: Database, robot_id: str, body: PlanIn, processes: int = 0, timeout_s: float = 60.0,
+                          room: int | None = None) -> dict:
+    """make_plan for an async route: the database is read on a route thread, then the plan waits for its process on
+    the event loop (a waiting plan holds no route thread: the lane's room can be larger than the route threads)."""
+    model, stored, cal = await anyio.to_thread.run_sync(_load, db, robot_id, body)
+    if processes > 0:
+        return await pool.configure(processes, timeout_s, room).arun(compute, (model, stored, cal, body))
+    return await anyio.to_thread.run_sync(compute, model, stored, cal, body)
 
 
 def compute(model: RobotModel, stored: tuple | None, cal: _Cal | None, body: PlanIn) -> dict:

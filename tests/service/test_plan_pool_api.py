@@ -1,10 +1,11 @@
 """Plans off the API's route threads (issue 33), over real HTTP against `calib serve`: with one plan process
-(CALIB_PLAN_PROCESSES=1, one more plan waiting) and a 1 s bound (CALIB_PLAN_TIMEOUT_S), six concurrent 1000-pose
-plans on the spray robot (about 2.5 s each on one core) leave GET /health and GET /robots fast, the plans beyond
-the waiting room get 503 with Retry-After at once, the ones that run are stopped at the bound with a 503 naming
-it, and the next plan is answered. Four route threads (CALIB_ROUTE_THREADS) stand for the default eight: more
-plans than route threads is what starved GET /robots (16 plans, 48 s); before, all six ran on the route threads,
-GET /robots waited seconds behind them and every plan was answered 200 after 15-30 s."""
+(CALIB_PLAN_PROCESSES=1, one more plan waiting: CALIB_PLAN_ROOM=1, the default is 4) and a 1 s bound
+(CALIB_PLAN_TIMEOUT_S), six concurrent 1000-pose plans on the spray robot (about 2.5 s each on one core) leave
+GET /health and GET /robots fast, the plans beyond the waiting room get 503 with Retry-After at once, the ones that
+run are stopped at the bound with a 503 naming it, and the next plan is answered. Four route threads
+(CALIB_ROUTE_THREADS) stand for the default eight: more plans than route threads is what starved GET /robots (16 plans,
+48 s); before, all six ran on the route threads, GET /robots waited seconds behind them and every plan was answered 200
+after 15-30 s. The default waiting room serving a handful of plans: test_hardening_rooms.py."""
 from __future__ import annotations
 
 import threading
@@ -24,7 +25,7 @@ GET_BOUND_S = 1.0
 def plan_server(tmp_path_factory):
     d = tmp_path_factory.mktemp("plansrv")
     s = Server(f"sqlite:///{d / 'calib.db'}", d / "server.log", CALIB_PLAN_PROCESSES=1, CALIB_PLAN_TIMEOUT_S=1,
-               CALIB_ROUTE_THREADS=4)
+               CALIB_PLAN_ROOM=1, CALIB_ROUTE_THREADS=4)
     yield s
     s.stop()
 
