@@ -41,6 +41,8 @@ class Settings:
     test_job_delay_s: float = 0.0  # CALIB_TEST_JOB_DELAY_S: tests only, makes a job last longer (see queue/runner.py)
     job_timeout_s: float = 600.0  # CALIB_JOB_TIMEOUT_S: a job running longer (summed over attempts) fails, its process killed
     progress_seconds: float = 0.5  # CALIB_PROGRESS_SECONDS: a running job's progress row is written this often
+    job_nice: int = 10  # CALIB_JOB_NICE: the job processes' niceness (0-19): identification is batch work, the API and
+    # its lanes answer people (a red team's load with jobs running: /health p99 230 ms at 0)
     warm_pool: bool = True  # CALIB_WARM_POOL: start the job processes (imports, one tiny calibration) before serving
     warmup_timeout_s: float = 30.0  # CALIB_WARMUP_TIMEOUT_S: `calib serve` waits at most this long for a warm pool
     test_poison: bool = False  # CALIB_TEST_POISON: tests only, CSV comment markers make a job crash or spin (runner.py)
@@ -73,6 +75,7 @@ class Settings:
             lease_seconds=lease,
             heartbeat_seconds=_float("CALIB_HEARTBEAT_SECONDS", max(0.2, lease / 3)),
             poll_seconds=_float("CALIB_POLL_SECONDS", 0.5),
+            job_nice=min(19, max(0, _int("CALIB_JOB_NICE", 10))),
             max_attempts=_int("CALIB_MAX_ATTEMPTS", 3),
             retry_backoff_seconds=_float("CALIB_RETRY_BACKOFF_SECONDS", 1.0),
             worker_concurrency=_int("CALIB_WORKER_CONCURRENCY", 2),

@@ -55,10 +55,16 @@ class Words:
     advice: str = "a retry when the server is less busy may succeed"
 
 
-def _main(conn, parent: int, preload: str) -> None:
+def _main(conn, parent: int, preload: str, nice: int = 0) -> None:
     """A lane's process: imports `preload` once, says ready, then runs (fn, args) after (fn, args) from its pipe,
-    answering ("ok", value), ("problem", ProblemError fields) or ("error", text)."""
+    answering ("ok", value), ("problem", ProblemError fields) or ("error", text); `nice` steps below the API."""
     import signal
+
+    if nice > 0:
+        try:
+            os.nice(nice)
+        except OSError:  # a platform without it: the API's priority
+            pass
 
     from .queue.runner import _watch_parent
 
@@ -84,11 +90,11 @@ def _main(conn, parent: int, preload: str) -> None:
 class _Process:
     """One lane process and its pipe."""
 
-    def __init__(self, preload: str, name: str):
+    def __init__(self, preload: str, name: str, nice: int = 0):
         ctx = mp.get_context("spawn")
         self.conn, child = ctx.Pipe()
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # inherited by the spawned child: one core per call
-        self.proc = ctx.Process(target=_main, args=(child, os.getpid(), preload), daemon=True, name=name)
+        self.proc = ctx.Process(target=_main, args=(child, os.getpid(), preload, nice), daemon=True, name=name)
         self.proc.start()
         child.close()
         self.ready = False
@@ -117,8 +123,8 @@ class Lane:
     """`size` processes importing `preload`, at most `room` calls (or `room_bytes` bytes) waiting; see the module's
     docstring."""
 
-    def __init__(self, name: str, preload: str, words: Words):
-        self.name, self.preload, self.words = name, preload, words
+    def __init__(self, name: str, preload: str, words: Words, nice: int = 0):
+        self.name, self.preload, self.words, self.nice = name, preload, words, nice  # nice: steps below the API
         self.lock = threading.Lock()
         self.size = self.room = self.room_bytes = 0
         self.timeout_s = 60.0
@@ -243,7 +249,7 @@ class _Slot:
 
     def __init__(self, lane: Lane, index: int):
         self.lane, self.tasks = lane, lane.tasks
-        self.proc = _Process(lane.preload, f"calib-{lane.name}")
+        self.proc = _Process(lane.preload, f"calib-{lane.name}", lane.nice)
         self.stopped = False
         self.thread = threading.Thread(target=self._loop, name=f"calib-{lane.name}-{index}", daemon=True)
         self.thread.start()
@@ -281,7 +287,7 @@ class _Slot:
     def _replace(self) -> None:
         self.proc.kill()
         if not self.stopped:
-            self.proc = _Process(self.lane.preload, f"calib-{self.lane.name}")
+            self.proc = _Process(self.lane.preload, f"calib-{self.lane.name}", self.lane.nice)
 
     def _call(self, fn, args: tuple) -> tuple[str, object]:
         w, timeout_s = self.lane.words, self.lane.timeout_s

@@ -142,6 +142,9 @@ SMALL_UPLOAD_BYTES = 1024 * 1024
 """Uploads up to this size are checked in a lane of their own (service/lanes.py): a small upload never waits behind
 a large one (issue 33: six concurrent 19 MB hostile CSVs made a valid 25 KB upload wait 69 s). A 150-pose CSV is about
 25 KB, 5000 poses about 0.6 MB; a CSV that takes seconds to check is megabytes long."""
+LARGE_NICE = 5
+"""The large-upload lane's processes run this many nice steps below the API: a 19 MB CSV checked for half a minute
+is batch work beside /health and the small uploads (whose lane keeps the API's priority)."""
 SMALL_ROOM = 32
 """Small uploads waiting for their lane at most (each is checked in milliseconds); more: 503 with Retry-After."""
 LARGE_ROOM_UPLOADS = PARSE_ROOM_UPLOADS
@@ -170,7 +173,8 @@ class _Parsers:
         words = dict(timeout_env="CALIB_PARSE_TIMEOUT_S", nothing="nothing was stored",
                      advice="a smaller CSV, or a retry when the server is less busy, is checked faster")
         self.small = Lane("parse-small", __name__, Words(noun="CSV check", **words))
-        self.large = Lane("parse", __name__, Words(noun="CSV check", room_env="CALIB_PARSE_ROOM_BYTES", **words))
+        self.large = Lane("parse", __name__, Words(noun="CSV check", room_env="CALIB_PARSE_ROOM_BYTES", **words),
+                          nice=LARGE_NICE)
 
     def configure(self, size: int, timeout_s: float = 120.0, room_bytes: int = DEFAULT_ROOM_BYTES) -> None:
         """`size` processes for large uploads, `room_bytes` bytes of them waiting; half as many processes (at least one)

@@ -153,8 +153,9 @@ def _watch_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="watch-parent", daemon=True).start()
 
 
-def slot_main(conn, parent_pid: int, warm: bool, poison: bool) -> None:
-    """A job process: warm up, then run the jobs the worker sends, one at a time, until the pipe closes.
+def slot_main(conn, parent_pid: int, warm: bool, poison: bool, nice: int = 0) -> None:
+    """A job process: warm up, then run the jobs the worker sends, one at a time, until the pipe closes. It runs
+    `nice` steps below the API (CALIB_JOB_NICE): on a busy machine the requests people wait for go first.
 
     Messages to the worker: ("ready", pid), ("progress", job_id, fraction, message), ("done", job_id, out).
     Messages from it: ("job", job_id, mode, model_json, raw, delay_s, options) with options the measurement
@@ -164,6 +165,11 @@ def slot_main(conn, parent_pid: int, warm: bool, poison: bool) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    if nice > 0:
+        try:
+            os.nice(nice)
+        except OSError:  # a platform without it: the job runs at the API's priority
+            pass
     _watch_parent(parent_pid)
     if warm:
         try:

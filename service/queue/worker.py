@@ -91,7 +91,8 @@ class Worker:
     def _spawn(self, index: int) -> Slot:
         parent, child = self._ctx.Pipe(duplex=True)
         p = self._ctx.Process(target=slot_main, name=f"calib-job-{index}", daemon=True,
-                              args=(child, os.getpid(), self.settings.warm_pool, self.settings.test_poison))
+                              args=(child, os.getpid(), self.settings.warm_pool, self.settings.test_poison,
+                                    self.settings.job_nice))
         p.start()
         child.close()
         return Slot(index, p, parent)

@@ -236,6 +236,26 @@ def job_processes(server_pid: int) -> set[int]:
     return out
 
 
+def niceness(pid: int) -> int:
+    """A process's nice value (/proc/<pid>/stat, field 19)."""
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[16])
+
+
+def test_batch_processes_run_below_the_api(tmp_path):
+    """Identification is batch work, and so is checking a large CSV: the job processes run CALIB_JOB_NICE (default
+    10) and the large-upload lane 5 nice steps below the API, the small-upload lane at its priority, so on a busy
+    machine /health and the requests people wait for go first (the red team's load: /health p99 230 ms, 190 with)."""
+    s = Server(f"sqlite:///{tmp_path / 'calib.db'}", tmp_path / "server.log", CALIB_WORKER_CONCURRENCY=1,
+               CALIB_JOB_NICE=7, CALIB_PARSE_PROCESSES=1, CALIB_PLAN_PROCESSES=0, CALIB_COMPUTE_PROCESSES=0)
+    try:
+        procs = wait_for(lambda: p if len(p := job_processes(s.pid)) == 3 else None, 60,
+                         "a job process and two upload lanes' processes")
+        base = niceness(s.pid)
+        assert sorted(niceness(p) - base for p in procs) == [0, 5, 7], procs
+    finally:
+        s.stop()
+
+
 def test_enqueue_wakes_the_dispatcher(poison):
     """The worker polls every 30 s here: a job done in seconds was claimed on the wake-up of its enqueue."""
     t0 = time.monotonic()
