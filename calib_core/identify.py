@@ -438,7 +438,7 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
         theta = xs[p_geo:p_geo + K_eff]
         Phi_q, Phi_p = bases
         chain = K.Chain(model, x, q + Phi_q @ theta, R0, labels)
-        J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
+        J_eff = (chain.joint_jacobian() @ Phi_q) + Phi_p
         r, J = y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
         if Z is None:
             return r, J
@@ -550,6 +550,7 @@ def identify(
     refold: Callable[[Calibration], Callable[[np.ndarray], tuple[Effect, ...]]] | None = None,
     pose_noise: tuple[np.ndarray, float] | None = None,
     start: Calibration | None = None,
+    model_error_mm: float | None = None,
 ) -> Calibration:
     """Identify the independent geometric parameters (restricted to names/prefixes in `free` if given)
     jointly with the parameters of `effects`.
@@ -565,6 +566,9 @@ def identify(
     of the same model on the same poses whose effects are all among `effects`, is where LM begins (its geometry and
     effect values; new effects at 0): the optimum does not depend on it beyond the convergence tolerance, but a
     search that adds one cause to a fitted model then takes a step or two instead of the whole way from nominal.
+    `model_error_mm` given: the fit weighted by the noise plus that model error (mm per axis), one solve instead
+    of two (the first, weighted by the noise alone, estimates the model error; on a large model error it converges
+    slowly: Agile Justin's mass steps, 100 iterations each); for fits that keep one weighting (the mass steps).
 
     Raises ValueError when the pose set cannot calibrate: fewer than three distinct joint configurations
     or fewer equations than parameters. A pose set that identifies less than the model's structure allows
@@ -590,12 +594,12 @@ def identify(
                          "parameters; measure more poses")
     return _calibrate(model, meas, sigma, x0, R0, ident, idx, effects=effects, loss=loss, regularize=regularize,
                       folds=folds, x_ref=x_ref, prior_scale=prior_scale, refold=refold, pose_noise=pose_noise,
-                      start=start_at(start, model, x0, idx, effects))[0]
+                      model_error_mm=model_error_mm, start=start_at(start, model, x0, idx, effects))[0]
 
 
 def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None, regularize=True, folds=5,
                x_ref=None, prior_scale=1.0, start=None, evals: ChainEvaluations | None = None, refold=None,
-               pose_noise=None) -> tuple[Calibration, Solution]:
+               pose_noise=None, model_error_mm: float | None = None) -> tuple[Calibration, Solution]:
     """identify() once the pose set is checked, pre-aligned and analysed: the fit weighted by the noise, again
     with the model error added to the weights, and the cross-validation. Also returns the first fit (noise
     weights alone). `start` (first fit) and memoised `evals` (geometric fits) let callers that fit one pose
@@ -612,12 +616,17 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
         n = meas.joints.shape[1]
         bases = (np.zeros((meas.n_poses, n, 0)), np.zeros((meas.n_poses, 3, 0)))
     fit = dict(prior_scale=prior_scale, evals=evals, pose_noise=pose_noise)
-    first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, **fit)
-    sigma0_measurement = float(np.sqrt(sol.s2))
-    s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
-    if s_model > 0.0:  # weight by measurement noise plus what the model leaves, then solve again
+    if model_error_mm is not None:  # the weighting given: one solve
+        s_model, sigma0_measurement = float(model_error_mm), None
         sigma = np.sqrt(sigma**2 + s_model**2)
-        sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x, **fit)
+        first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, **fit)
+    else:
+        first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, **fit)
+        sigma0_measurement = float(np.sqrt(sol.s2))
+        s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
+        if s_model > 0.0:  # weight by measurement noise plus what the model leaves, then solve again
+            sigma = np.sqrt(sigma**2 + s_model**2)
+            sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x, **fit)
     x = x0.copy()
     x[idx] = sol.x[: len(idx)]
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,
@@ -698,7 +707,7 @@ def _one_step_folds(model, meas, sigma, x0, R0, idx, loss, regularize, folds, ba
     x[idx] = start[:p_geo]
     theta = start[p_geo:]
     chain = K.Chain(model, x, q + Phi_q @ theta, R0, labels)
-    J = np.concatenate([chain.jacobian()[:, :, idx], np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q)
+    J = np.concatenate([chain.jacobian()[:, :, idx], (chain.joint_jacobian() @ Phi_q)
                         + Phi_p], axis=2)
     _, prior = _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior, Phi_q.shape[2])
     out = np.empty(meas.n_poses)

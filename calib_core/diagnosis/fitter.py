@@ -25,12 +25,14 @@ class _Fitter:
     prior_scale: float
     last: list = field(default_factory=list, compare=False, repr=False)
 
-    def __call__(self, effects=(), x_ref=None, folds: int | None = None, pose_noise=None) -> Calibration:
+    def __call__(self, effects=(), x_ref=None, folds: int | None = None, pose_noise=None,
+                 model_error_mm: float | None = None) -> Calibration:
         refold = None
         if any(_identified_play(e) for e in effects):
             refold = lambda cal: _refold_plays(self.meas, cal)  # noqa: E731
         cal = identify(self.model, self.meas, effects=tuple(effects), loss=self.loss, x_ref=x_ref, free=self.free,
                        prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold,
-                       pose_noise=pose_noise, start=self.last[0] if self.last else None)
+                       pose_noise=pose_noise, start=self.last[0] if self.last else None,
+                       model_error_mm=model_error_mm)
         self.last[:] = [cal]
         return cal

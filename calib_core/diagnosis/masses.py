@@ -183,12 +183,13 @@ def _mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, tilt_fir
     moves gravity's direction alone (a base 25 mrad off level otherwise went into the first moments and stopped
     there: 0.090 mm against the truth where the noise gives 0.009, one test draw in about 30)."""
     phi, best = phi.copy(), None
+    weighting = t.model_error_mm  # every step and refit on the start's weights: comparable misfits, one solve each
     for k in range(MASS_STEPS):
         values = t.effect_values  # the compliances where the step linearises (fitted at the last masses)
         step = mass_step([(effects[i], values[i]) for i in idx], model, g)
         if tilt_first and k == 0:
             step = dataclasses.replace(step, bodies=(), prior=step.prior[-2:])
-        t = fit(effects + [step], t.x, folds=0)
+        t = fit(effects + [step], t.x, folds=0, model_error_mm=weighting)
         delta, tilt = t.effect_values[-1][:-2].reshape(-1, 4), t.effect_values[-1][-2:]
         phi[list(step.bodies)] += delta
         phi[:, 0] = np.maximum(phi[:, 0], 0.0)
@@ -196,7 +197,7 @@ def _mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, tilt_fir
         masses = tuple(tuple(float(v) for v in row) for row in phi)
         effects = [dataclasses.replace(e, masses=masses, gravity=tuple(float(v) for v in g)) if i in idx else e
                    for i, e in enumerate(chosen)]
-        refit = fit(effects, t.x, folds=0)
+        refit = fit(effects, t.x, folds=0, model_error_mm=weighting)
         misfit = float(np.sum(refit.solution.weights[:, None] * refit.solution.residual**2))
         if best is None or misfit < best[0]:
             best = (misfit, effects, refit.x)

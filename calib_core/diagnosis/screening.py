@@ -70,7 +70,7 @@ def _weighted_system_of(cal: Calibration, meas: Measurements, sigma: np.ndarray,
     cols = [chain.jacobian()[:, :, cal.free]]
     if cal.effects:
         Pq, Pp = effect_bases(model, meas, list(cal.effects), x_ref if cal.x_basis is None else cal.x_basis, cal.R0)
-        cols.append(np.einsum("nij,njk->nik", chain.joint_jacobian(), Pq) + Pp)
+        cols.append((chain.joint_jacobian() @ Pq) + Pp)
     J = (np.concatenate(cols, axis=2) / sigma[:, None, None]).reshape(len(r.ravel()), -1)
     norms = np.linalg.norm(J, axis=0)
     U, s, _ = np.linalg.svd(J / np.where(norms > 0, norms, 1.0), full_matrices=False)  # unit-free rank
@@ -84,7 +84,7 @@ def _weighted_columns(e: Effect, ctx: Context, Jq: np.ndarray, sigma: np.ndarray
     k = len(e.parameter_names(ctx.model))
     C = np.zeros((ctx.meas.n_poses, 3, k))
     if b.joint is not None:
-        C += np.einsum("nij,njk->nik", Jq, b.joint)
+        C += Jq @ b.joint
     if b.cart is not None:
         C += b.cart
     return (C / sigma[:, None, None]).reshape(-1, k), b

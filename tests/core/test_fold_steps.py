@@ -56,3 +56,23 @@ def test_candidates_adding_the_same_displacement_share_one_decision():
     assert _same_columns(a, cand(fitted * (1 + 1e-5), projected, 40.0001, JointCompliance((2,))))
     assert not _same_columns(a, cand(fitted + 0.01 * rng.normal(size=50), projected, 40.0, JointCompliance((2,))))
     assert not _same_columns(a, cand(fitted, projected, 44.0, JointCompliance((2,))))
+
+
+def test_a_given_model_error_is_the_second_fit_in_one_solve(seed):
+    """identify(model_error_mm=s): one solve weighted by the noise plus s. Given the model error the two-solve fit
+    estimated, it lands on that fit's optimum (the mass steps' shortcut); given another, on another optimum."""
+    rng = np.random.default_rng(seed)
+    model = parse_model((arm6 if seed % 2 else spray7)())
+    world = World(model, seed)
+    q = world.sample_joints(int(rng.integers(80, 200)), rng)
+    hide(world, "joint_spring", float(rng.uniform(3.0, 8.0)), rng, q=q)
+    meas = world.measure(q)
+    effects = (JointCompliance((int(rng.integers(1, model.n_joints)),)),)
+    two = identify_module.identify(model, meas, effects=effects, folds=0)
+    assert two.model_error_mm > 0.0, f"seed {seed}: the wrong mass data leave no model error"
+    one = identify_module.identify(model, meas, effects=effects, folds=0, model_error_mm=two.model_error_mm)
+    std = two.solution.std
+    assert np.all(np.abs(one.solution.x - two.solution.x) <= 1e-3 * std + 1e-12), f"seed {seed}"
+    assert one.model_error_mm == two.model_error_mm and np.allclose(one.sigma_mm, two.sigma_mm)
+    other = identify_module.identify(model, meas, effects=effects, folds=0, model_error_mm=0.0)
+    assert np.allclose(other.sigma_mm, meas.noise_sigma_mm()) and not np.allclose(other.solution.x, two.solution.x)
