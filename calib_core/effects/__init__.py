@@ -11,19 +11,22 @@ from ..model import ANGULAR, GEOMETRIC, RobotModel
 from .base import Basis, Context, Effect, apply, has_loads, loads
 from .cartesian_effects import AxisStraightness, LinkDeflection, LinkGrowth, ThermalDrift
 from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance
-from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale
+from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale, TiltedCompliance, horizontal
 from .residual import ResidualField
 from .structure import Probe, SessionStep, TargetStep
 
 CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointError, Backlash, JointScale,
                                    AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, LateralCompliance,
                                    LateralJointCompliance,
-                                   SessionStep, Probe, TargetStep, LinkGrowth)}
+                                   SessionStep, Probe, TargetStep, LinkGrowth, TiltedCompliance)}
 KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
          "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
          "thermal_drift": ThermalDrift, "unexplained": ResidualField}
 """Kind -> class for states stored before the class name was (the contract's kinds are not unique per class)."""
 HARMONICS = (1, 2, 3)
+TILT_LOADED = 0.05
+"""A vertical axis is a candidate for a spring under a tilted base when gravity across the base would load it by this
+share of the most loaded joint's span, or more (a few degrees of tilt then show as a tenth of a degree's load)."""
 LINK_GROWTH_SHARE = 0.1
 """A link is a candidate for growing with temperature when its lengths (a, d, b) reach this share of the longest's."""
 
@@ -41,6 +44,13 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
         span = np.ptp(load, axis=0)
         loaded = [j for j in range(n) if span[j] > 1e-6 * max(span.max(), 1e-300) and model.moving[j]]
         out += [JointCompliance((j,)) for j in loaded]
+        if model.has_mass and meas.tau is None:
+            # a vertical axis carries a load only when the base is not level: its spring under a tilted gravity
+            g = np.asarray(model.gravity, float)
+            across = np.max([np.ptp(loads(chain, meas, None, np.linalg.norm(g) * d), axis=0) for d in horizontal(g)],
+                            axis=0)
+            out += [TiltedCompliance((j,)) for j in range(n) if model.moving[j] and not model.prismatic[j]
+                    and j not in loaded and across[j] > TILT_LOADED * max(span.max(), 1e-300)]
         if len(loaded) > 1:
             out.append(JointCompliance(tuple(loaded)))
         big = np.abs(load).max(axis=0)
@@ -105,4 +115,5 @@ def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
 
 
 __all__ = ["effect_state", "on_joints", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LateralJointCompliance", "LoadCompliance", "Probe", "SessionStep", "TargetStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
-           "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "LinkGrowth", "ThermalDrift"]
+           "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "LinkGrowth", "ThermalDrift",
+           "TiltedCompliance"]

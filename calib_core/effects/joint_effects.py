@@ -122,6 +122,55 @@ class JointCompliance(Effect):
                 f"load{also}")
 
 
+def horizontal(g: np.ndarray) -> np.ndarray:
+    """(2, 3): two orthonormal directions across gravity g (3,), the axes a base can tilt about."""
+    z = np.asarray(g, float) / np.linalg.norm(g)
+    a = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    return np.stack([a, np.cross(z, a)])
+
+
+@dataclass(frozen=True)
+class TiltedCompliance(Effect):
+    """dq_j = c_j * (load_j under gravity tilted by t): a spring on a joint whose load the model's gravity cannot
+    compute, a vertical axis on a base that is not level (issue 34). The load is linear in gravity, so for a small
+    tilt t (rad, about the two horizontal axes) it is c t_1 L_1 + c t_2 L_2, L_k the load gravity of the model's size
+    would put on the joint along horizontal direction k (`horizontal`): two parameters per joint, the compliance
+    times each tilt component (their size, not the split between c and t, is what the data determine)."""
+
+    kind = "joint_compliance"
+    needs = "mass"
+
+    def parameter_names(self, model):
+        return [f"{model.joint_names[j]}.compliance_times_tilt_{a}" for j in self.joints for a in "uv"]
+
+    def parameter_units(self, model):
+        return [f"{_offset_unit(model, j)}/{_load_unit(model, j)}" for j in self.joints for _ in "uv"]
+
+    def basis(self, ctx: Context) -> Basis:
+        g = np.asarray(ctx.model.gravity, float)
+        across = [loads(ctx.chain, ctx.meas, None, np.linalg.norm(g) * d) for d in horizontal(g)]
+        N, n = ctx.meas.joints.shape
+        b = np.zeros((N, n, 2 * len(self.joints)))
+        for i, k in enumerate(self.joints):
+            for a in range(2):
+                b[:, :, 2 * i + a] = ctx.moves[None, :, k] * across[a][:, k, None]
+        j = self.joints[0]
+        return Basis(b, None, np.hypot(across[0][:, j], across[1][:, j]),
+                     f"load gravity across the base would put on {ctx.model.joint_names[j]} "
+                     f"({_load_unit(ctx.model, j)})")
+
+    def label(self, model):
+        return super().label(model) + " tilted base"
+
+    def explain(self, model):
+        who = ", ".join(model.joint_names[j] for j in self.joints)
+        one = len(self.joints) == 1
+        return (f"{who} deflect{'s' if one else ''} under the load a base that is not level puts on "
+                f"{'its axis' if one else 'their axes'} (the model's gravity gives {'it' if one else 'them'} none)"
+                f"{_followers(model, self.joints)}")
+
+
 @dataclass(frozen=True)
 class Backlash(Effect):
     """dq_j = b/2 * tanh(load_j / transition): the joint sits on one flank of its gear play or the other;

@@ -31,7 +31,7 @@ def _draw(kind: str, seed: int, size: float | None = None):
     size = float(np.exp(rng.uniform(*np.log(SIZES)))) if size is None else size
     world = World(model, seed)
     q = world.sample_joints(150, rng)
-    payload = LOAD_CYCLE_KG[robot] if kind == "two_joint_springs" else None
+    payload = LOAD_CYCLE_KG[robot] if kind in ("two_joint_springs", "tilted_base_spring") else None
     info = hide(world, kind, size, rng, q=q, payload_kg=payload)
     camp = world.campaign(q, payload_kg=payload, temperature=info["temperature"])
     where = f"{kind} on {robot} {info['parameters']} at {size:.2f}x the noise, seed {seed}"
@@ -90,7 +90,20 @@ def test_one_link_growing_with_temperature_is_named_for_that_link(seed):
     assert _truth_error(world, d.calibration, info, camp, payload, seed) < TRUTH_LIMIT, where
 
 
-@pytest.mark.parametrize("kind", ["two_joint_springs", "target_remount", "link_thermal_growth"])
+def test_a_spring_under_a_tilted_base_is_named_for_its_joint(seed):
+    """Gravity 3-10 deg off the model's, a spring on the joint the tilt loads (arm6 A1, a vertical axis the model's
+    gravity gives no load; spray7 J2): the compliance is named for that joint (on the vertical axis as the form
+    `tilted base`) and predicts fresh poses. (The benchmark also counts a small extra name, a scale error of 2-3 %
+    gain, in 1 of 15 draws per robot: not asserted here.)"""
+    model, world, info, camp, payload, where = _draw("tilted_base_spring", seed)
+    d = diagnose(model, camp.meas)
+    where += f": said {_said(d)}"
+    springs = [f for f in d.findings if is_named(f) and f["kind"] == "joint_compliance"]
+    assert springs and set().union(*[set(named_joints(f)[0]) for f in springs]) == set(info["joints"]), where
+    assert _truth_error(world, d.calibration, info, camp, payload, seed) < TRUTH_LIMIT, where
+
+
+@pytest.mark.parametrize("kind", ["two_joint_springs", "target_remount", "link_thermal_growth", "tilted_base_spring"])
 def test_no_mechanism_means_no_finding(kind, seed):
     model, world, info, camp, payload, where = _draw(kind, seed, size=0.0)
     d = diagnose(model, camp.meas)
