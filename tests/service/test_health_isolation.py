@@ -118,7 +118,7 @@ def test_health_answers_while_oversized_predicts_are_in_flight(srv):
 
 
 def test_health_does_not_wait_for_the_routes_thread_pool(srv, model_doc):
-    """Every thread of the routes' shared pool (CALIB_ROUTE_THREADS, 8) is a write waiting for the SQLite write
+    """Every thread of the routes' shared pool (CALIB_ROUTE_THREADS, 4) is a write waiting for the SQLite write
     lock, which this test holds, and more writes queue for them: /health (a read, in threads of its own) still
     answers, before any of those writes can complete."""
     n = 24

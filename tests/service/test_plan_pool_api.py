@@ -3,7 +3,7 @@
 (CALIB_PLAN_TIMEOUT_S), six concurrent 1000-pose plans on the spray robot (about 2.5 s each on one core) leave
 GET /health and GET /robots fast, the plans beyond the waiting room get 503 with Retry-After at once, the ones that
 run are stopped at the bound with a 503 naming it, and the next plan is answered. Four route threads
-(CALIB_ROUTE_THREADS) stand for the default eight: more plans than route threads is what starved GET /robots (16 plans,
+(CALIB_ROUTE_THREADS, the default; it was eight): more plans than route threads is what starved GET /robots (16 plans,
 48 s); before, all six ran on the route threads, GET /robots waited seconds behind them and every plan was answered 200
 after 15-30 s. The default waiting room serving a handful of plans: test_hardening_rooms.py."""
 from __future__ import annotations
