@@ -60,14 +60,9 @@ def _main(conn, parent: int, preload: str, nice: int = 0) -> None:
     answering ("ok", value), ("problem", ProblemError fields) or ("error", text); `nice` steps below the API."""
     import signal
 
-    if nice > 0:
-        try:
-            os.nice(nice)
-        except OSError:  # a platform without it: the API's priority
-            pass
+    from .queue.runner import _watch_parent, run_below
 
-    from .queue.runner import _watch_parent
-
+    run_below(nice)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when its lane processes end
     _watch_parent(parent)  # a server killed outright (SIGKILL) leaves no process behind
     importlib.import_module(preload)  # calib_core's imports, paid before a call's clock starts

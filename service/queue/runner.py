@@ -153,6 +153,15 @@ def _watch_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="watch-parent", daemon=True).start()
 
 
+def run_below(nice: int) -> None:
+    """This process `nice` steps below the API's priority (0: the same); where the platform cannot, the same."""
+    if nice > 0:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+
+
 def slot_main(conn, parent_pid: int, warm: bool, poison: bool, nice: int = 0) -> None:
     """A job process: warm up, then run the jobs the worker sends, one at a time, until the pipe closes. It runs
     `nice` steps below the API (CALIB_JOB_NICE): on a busy machine the requests people wait for go first.
@@ -165,11 +174,7 @@ def slot_main(conn, parent_pid: int, warm: bool, poison: bool, nice: int = 0) ->
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    if nice > 0:
-        try:
-            os.nice(nice)
-        except OSError:  # a platform without it: the job runs at the API's priority
-            pass
+    run_below(nice)
     _watch_parent(parent_pid)
     if warm:
         try:
