@@ -29,7 +29,8 @@ import numpy as np
 
 from . import kinematics as K
 from .effects import Backlash, Context, SessionStep
-from .identify import Calibration, _columns, effect_bases
+from .calibrated import _columns
+from .identify import Calibration, effect_bases
 from .io import Measurements
 
 

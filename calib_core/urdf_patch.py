@@ -555,11 +555,9 @@ def source_of(doc: dict | None) -> str | None:
 
 def _state_x(model: RobotModel, state: dict) -> np.ndarray:
     """The state's parameter vector in today's layout (a state saved with fewer parameters per row is widened by
-    calib_core.identify.state_vector where it exists)."""
-    try:
-        from .identify import state_vector
-    except ImportError:  # pragma: no cover - before the layout carried its own width
-        return np.asarray(state["x"], float)
+    calib_core.calibrated.state_vector)."""
+    from .calibrated import state_vector
+
     return np.asarray(state_vector(model, state), float)
 
 

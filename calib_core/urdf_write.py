@@ -83,7 +83,7 @@ def calibrated_model_dict(model: RobotModel, state: dict, source: dict | None = 
     the robot itself."""
     if not isinstance(state, dict):
         state = state.to_state()
-    from .identify import state_vector
+    from .calibrated import state_vector
     from .kinematics import base_rotation, layout
 
     n = model.n_joints

@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session, object_session
 from calib_core.compensate import compensate as solve_compensation
 from calib_core.compensate import nominal_to_calibrated
 from calib_core.effects.base import unloaded
-from calib_core.identify import CalibratedRobot, StaleState
+from calib_core.calibrated import CalibratedRobot, StaleState
 from calib_core.io import MAX_TAU, Measurements
 from calib_core.model import (ANGLE_TO_RAD, JOINT_MARGIN_FRACTION, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM,
                                MAX_REVOLUTE_DEG, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC,

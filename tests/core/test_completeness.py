@@ -159,7 +159,7 @@ def test_identifiability_is_judged_where_the_target_really_is(seed):
 def test_a_state_saved_with_five_parameters_per_row_predicts_as_before(seed):
     """Stored calibrations from before gamma and b (no per-row marker, 5n + 6S + 3T numbers) are read with both at
     0: the same predictions to the bit, also with several setups (their count is in the state)."""
-    from calib_core.identify import COMPLETE_ROWS, CalibratedRobot
+    from calib_core.calibrated import COMPLETE_ROWS, CalibratedRobot
 
     rng = np.random.default_rng(seed)
     model = parse_model(torso_two_arms())

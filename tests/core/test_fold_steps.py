@@ -14,16 +14,22 @@ from calib_world.scenarios import hide
 identify_module = importlib.import_module("calib_core.identify")
 
 
-@pytest.mark.parametrize("loss", [None, "huber"])
-def test_one_step_folds_give_the_lm_folds_held_out_distances(loss, seed, monkeypatch):
-    """A drawn robot, a drawn spring at a drawn size (with wrong mass data), bad readings for the robust loss: the
-    per-pose held-out distances of the one-step folds agree with the LM folds' to a small share of the noise."""
+def _spring_world(seed: int, sizes: tuple[float, float]):
+    """A drawn robot (arm6 or spray7), 80-200 drawn poses, a spring hidden at a size drawn in `sizes` x the noise
+    (with wrong mass data): the model, its measurements and the generator that drew them."""
     rng = np.random.default_rng(seed)
     model = parse_model((arm6 if seed % 2 else spray7)())
     world = World(model, seed)
     q = world.sample_joints(int(rng.integers(80, 200)), rng)
-    hide(world, "joint_spring", float(rng.uniform(1.0, 8.0)), rng, q=q)
-    meas = world.measure(q)
+    hide(world, "joint_spring", float(rng.uniform(*sizes)), rng, q=q)
+    return model, world.measure(q), rng
+
+
+@pytest.mark.parametrize("loss", [None, "huber"])
+def test_one_step_folds_give_the_lm_folds_held_out_distances(loss, seed, monkeypatch):
+    """A drawn robot, a drawn spring at a drawn size (with wrong mass data), bad readings for the robust loss: the
+    per-pose held-out distances of the one-step folds agree with the LM folds' to a small share of the noise."""
+    model, meas, rng = _spring_world(seed, (1.0, 8.0))
     if loss:  # a few readings far off: the fold's own robust weights matter
         bad = rng.choice(meas.n_poses, 3, replace=False)
         meas.points[bad] += rng.normal(0.0, 2.0, (3, 3))
@@ -61,12 +67,7 @@ def test_candidates_adding_the_same_displacement_share_one_decision():
 def test_a_given_model_error_is_the_second_fit_in_one_solve(seed):
     """identify(model_error_mm=s): one solve weighted by the noise plus s. Given the model error the two-solve fit
     estimated, it lands on that fit's optimum (the mass steps' shortcut); given another, on another optimum."""
-    rng = np.random.default_rng(seed)
-    model = parse_model((arm6 if seed % 2 else spray7)())
-    world = World(model, seed)
-    q = world.sample_joints(int(rng.integers(80, 200)), rng)
-    hide(world, "joint_spring", float(rng.uniform(3.0, 8.0)), rng, q=q)
-    meas = world.measure(q)
+    model, meas, rng = _spring_world(seed, (3.0, 8.0))
     effects = (JointCompliance((int(rng.integers(1, model.n_joints)),)),)
     two = identify_module.identify(model, meas, effects=effects, folds=0)
     assert two.model_error_mm > 0.0, f"seed {seed}: the wrong mass data leave no model error"

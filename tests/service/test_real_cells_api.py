@@ -211,7 +211,7 @@ def test_a_calibration_saved_before_causes_acted_on_drives_is_refused_not_served
     import sqlite3
 
     from calib_core.effects import JointCompliance, effect_state
-    from calib_core.identify import ON_DRIVES
+    from calib_core.calibrated import ON_DRIVES
 
     doc = torso_two_arms()
     model = parse_model(doc)
