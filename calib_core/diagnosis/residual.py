@@ -15,7 +15,7 @@ from .evidence import HOLDOUT_ALPHA, _better, _p, holdout_gain, model_error_mm
 from .findings import _names
 from .fitter import _Fitter
 from .masses import _distributed
-from .screening import _robust_sigma, _weighted_columns, _weighted_system, screen
+from .screening import _robust_sigma, _weighted_columns, _weighted_system, fold_predictions, screen
 from .time_structure import _when
 
 
@@ -173,11 +173,7 @@ def field_scale(current: Calibration, meas: Measurements, x_ref: np.ndarray, fol
         C = _weighted_columns(ResidualField((), length_scale=ls, prior_std=prior), ctx, Jq, sigma)[0]
         A = np.hstack([Q, C])
         ridge = np.r_[np.zeros(Q.shape[1]), np.full(C.shape[1], 1.0 / prior**2)]
-        pred = np.empty_like(r)
-        for k in range(folds):
-            tr, te = fold != k, fold == k
-            theta = np.linalg.lstsq(A[tr].T @ A[tr] + np.diag(ridge), A[tr].T @ r[tr], rcond=None)[0]
-            pred[te] = A[te] @ theta
+        pred = fold_predictions(A, r, fold, folds, ridge)
         ms = float(np.mean((((r - pred).reshape(-1, 3) * sigma[:, None]) ** 2).sum(1)))
         if best is None or ms < best[0]:
             best = (ms, ls)

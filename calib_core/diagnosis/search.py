@@ -81,6 +81,7 @@ class _Search:
     rejected: list[dict] = field(default_factory=list)
     deadline: float | None = None  # time.monotonic() after which no further model is fitted (the job's time budget)
     untested: str | None = None  # what the deadline left untested, once it has passed
+    play_memo: dict = field(default_factory=dict)  # the play search per model and joints (shared with _sparser's)
 
     def late(self, what: str) -> bool:
         """True once the deadline has passed; the first call after it records `what` was left untested."""
@@ -117,8 +118,7 @@ class _Search:
         play_joints = sorted(j for j in active if ("backlash", (j,)) not in taken)
         if play_joints:
             say(f"finding where a play would switch on {', '.join(model.joint_names[j] for j in play_joints)}")
-        plays = _identified_backlash(self.current, meas, sigma, x_ref, play_joints,
-                                     lambda: self.late("where a play would switch on the joints whose load shows"))
+        plays = self._plays(play_joints)
         play_pool: dict[int, list[Backlash]] = {}
         for b in plays:
             play_pool.setdefault(b.joints[0], []).append(b)
@@ -194,6 +194,20 @@ class _Search:
             self.x_ref = trial.x  # later bases (loads, frames) on the better geometry
             return True
         return False
+
+    def _plays(self, joints: list[int]) -> list[Backlash]:
+        """_identified_backlash on `joints` at the current model, once per model: _sparser's first round asks again
+        on the same model (the Motoman's search did each play search twice)."""
+        key = (id(self.current), id(self.x_ref), tuple(joints))
+        hit = self.play_memo.get(key)
+        if hit is not None and hit[0] is self.current and hit[1] is self.x_ref:
+            return hit[2]
+        before = self.untested
+        plays = _identified_backlash(self.current, self.meas, self.sigma, self.x_ref, joints,
+                                     lambda: self.late("where a play would switch on the joints whose load shows"))
+        if self.untested == before:  # complete (a search the deadline cut short is not kept)
+            self.play_memo[key] = (self.current, self.x_ref, plays)
+        return plays
 
     def _sparser(self, c: Candidate, trial: Calibration) -> bool:
         """Search on without causes spread over several joints, for at most MAX_SPARSE rounds (and fewer parameters
