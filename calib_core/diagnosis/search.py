@@ -17,7 +17,7 @@ from ..identify import Calibration, identify
 from ..io import Measurements
 from ..model import RobotModel
 from ..select import select_geometry
-from .evidence import HOLDOUT_ALPHA, _better, _p, holdout_gain, holdout_ms
+from .evidence import ACCEPT_ALPHA, HOLDOUT_ALPHA, _better, _p, holdout_gain, holdout_ms
 from .findings import SIGNIFICANT_STD, _beyond, _chain, _finding, _judge_sizes, _who, present_findings
 from .fitter import _Fitter
 from .lookalikes import _best_of_lookalikes, _cause, _merge_alike, _refine, _refine_step, _revisit
@@ -172,7 +172,7 @@ class _Search:
                 self.rejected.append({**who, "why": str(exc)})
                 continue
             p_gain, drop = holdout_gain(self.current, trial)
-            if p_gain > HOLDOUT_ALPHA or drop < MIN_EXCESS_FRACTION * max(excess, 0.0):
+            if p_gain > ACCEPT_ALPHA or drop < MIN_EXCESS_FRACTION * max(excess, 0.0):
                 hb, ha = self.current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
                 self.rejected.append({**who, "why": f"significant in the fit ({_p(c.p_value)}), but held-out "
                                                     f"poses do not confirm it ({hb:.3f} -> {ha:.3f} mm, paired p = "
