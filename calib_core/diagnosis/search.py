@@ -59,8 +59,10 @@ SIGNIFICANT_STD (kept when held-out poses do not find the wider form better)."""
 NOISE_LIKE = 3.0
 """A residual that follows nothing is taken for noise (the floor re-estimated) only below this multiple of
 the assumed floor; beyond it, it is reported as unexplained. So is one that follows something when no cause was
-named and no correction predicts it on held-out poses (the note says what it follows): the one false finding left in
-1400 no-effect worlds of issue 34 (1.2x the floor, 6 % explained by J1's angle, p = 2.2e-4)."""
+named and no correction predicts it on held-out poses (the note says what it follows), unless it is what the targets
+of a pose share (a torso landing differently at each pose: no function of the joints predicts it, a reference target
+would): the one false finding left in 1400 no-effect worlds of issue 34 (1.2x the floor, 6 % explained by J1's
+angle, p = 2.2e-4)."""
 
 
 @dataclass
@@ -447,7 +449,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                     break
             weighted = _with_pose_noise(trial[0] if trial else current, fit, meas, next(
                 (f["effect"] for f in follows if f.get("family") == "shared_by_targets"), None))
-        if noise_like and (not follows or (not chosen and trial is None and weighted is None)):
+        shared = any(f.get("family") == "shared_by_targets" for f in follows)  # no correction can predict it
+        if noise_like and (not follows or (not chosen and trial is None and weighted is None and not shared)):
             new_floor = float(held_out_rms)
             after = f" left after {', '.join(e.label(model) for e in chosen)}" if chosen else ""
             what = ("follows nothing" + (" more" if chosen else "") + ": not time order, no joint, not the load, no "
