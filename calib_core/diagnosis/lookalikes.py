@@ -7,7 +7,8 @@ import dataclasses
 import numpy as np
 
 from .. import kinematics as K
-from ..effects import Backlash, Context, Effect, JointCompliance, LoadCompliance, has_loads
+from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedLinkDeflection,
+                       has_loads)
 from ..effects.structure import at_gap, session_clock
 from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
 from .findings import _finding, _who
@@ -57,7 +58,8 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
                  ctx: Context) -> list[Effect]:
     """Richer forms of an accepted cause, kept only if held-out poses prefer them: a stiffening spring, the
     load identified from the data instead of the mass data, a play whose switch follows the identified load,
-    a soft play (the joint moves through its play elastically near zero load). ctx: the poses at the reference."""
+    a soft play (the joint moves through its play elastically near zero load), a bending link on a tilted base.
+    ctx: the poses at the reference."""
     if len(e.joints) != 1:
         return []
     j = e.joints[0]
@@ -81,6 +83,8 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
             out += [dataclasses.replace(e, transition=e.transition / share * t) for t in SOFT_PLAY]
     if isinstance(e, (Backlash, JointCompliance, LoadCompliance)):
         out += [p for p in play_pool.get(j, []) if p != e]
+    if type(e) is LinkDeflection:  # part of its sag turned sideways by a base that is not level
+        out.append(TiltedLinkDeflection(e.joints))
     return out
 
 

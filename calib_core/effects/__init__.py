@@ -9,7 +9,7 @@ from ..io import Measurements
 from ..kinematics import Chain, nominal_vector
 from ..model import ANGULAR, GEOMETRIC, RobotModel
 from .base import Basis, Context, Effect, apply, has_loads, loads
-from .cartesian_effects import AxisStraightness, LinkDeflection, LinkGrowth, ThermalDrift
+from .cartesian_effects import AxisStraightness, LinkDeflection, LinkGrowth, ThermalDrift, TiltedLinkDeflection
 from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale, TiltedCompliance, horizontal
 from .residual import ResidualField
@@ -18,7 +18,8 @@ from .structure import Probe, SessionStep, TargetStep
 CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointError, Backlash, JointScale,
                                    AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, LateralCompliance,
                                    LateralJointCompliance,
-                                   SessionStep, Probe, TargetStep, LinkGrowth, TiltedCompliance)}
+                                   SessionStep, Probe, TargetStep, LinkGrowth, TiltedCompliance,
+                                   TiltedLinkDeflection)}
 KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
          "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
          "thermal_drift": ThermalDrift, "unexplained": ResidualField}
@@ -116,4 +117,4 @@ def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
 
 __all__ = ["effect_state", "on_joints", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LateralJointCompliance", "LoadCompliance", "Probe", "SessionStep", "TargetStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
            "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "LinkGrowth", "ThermalDrift",
-           "TiltedCompliance"]
+           "TiltedCompliance", "TiltedLinkDeflection"]

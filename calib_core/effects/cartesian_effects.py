@@ -9,6 +9,7 @@ from ..kinematics import _cross
 from ..model import ANGULAR, GEOMETRIC
 from ..statics import com_world, gravity_world, segment
 from .base import Basis, Context, Effect
+from .joint_effects import horizontal
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,51 @@ class LinkDeflection(Effect):
 
     def explain(self, model):
         return f"the link ending at {model.joint_names[self.joints[0]]} bends under its own weight and what it carries"
+
+
+@dataclass(frozen=True)
+class TiltedLinkDeflection(LinkDeflection):
+    """A bending link (LinkDeflection) on a base that is not level: bending is linear in gravity, so gravity tilted by
+    t (rad, about the two horizontal axes) adds c t_k times the bending under gravity of the model's size along
+    horizontal direction k, for both compliances: four parameters more, each a compliance times a tilt component.
+    A base 3-10 deg off level turns a link's sag sideways, and the sideways part went to joint scales and springs on
+    the joints before it (issue 34)."""
+
+    def parameter_names(self, model):
+        n = model.joint_names[self.joints[0]]
+        return super().parameter_names(model) + [f"{n}.link_compliance{part}_times_tilt_{a}" for a in "uv"
+                                                 for part in ("", "_own_weight")]
+
+    def parameter_units(self, model):
+        return ["1/(N*mm^2)"] * 6
+
+    def _columns(self, ctx: Context, phi: np.ndarray | None = None, g: np.ndarray | None = None) -> list[np.ndarray]:
+        """The six bendings (N, 3) mm per unit parameter: carried and own weight under gravity g (default the
+        model's), then the same under gravity of its size along each horizontal direction."""
+        k, payload = self.joints[0], ctx.meas.payload_kg()
+        g = np.asarray(ctx.model.gravity if g is None else g, float)
+        out = list(bending(ctx.chain, k, payload, phi, g))
+        for d in horizontal(np.asarray(ctx.model.gravity, float)):
+            out += list(bending(ctx.chain, k, payload, phi, np.linalg.norm(g) * d))
+        on = ctx.chain.on_path[k][:, None]
+        return [c * on for c in out]
+
+    def basis(self, ctx: Context) -> Basis:
+        cols = self._columns(ctx)
+        return Basis(None, np.stack(cols, axis=2), np.linalg.norm(cols[0] + cols[1], axis=1),
+                     f"bending of the link ending at {ctx.model.joint_names[self.joints[0]]} per unit 1/(EI), "
+                     f"gravity along and across the base (mm*N*mm^2)")
+
+    def displacement(self, ctx: Context, values: np.ndarray, phi: np.ndarray | None = None,
+                     g: np.ndarray | None = None) -> np.ndarray:
+        return sum(c * v for c, v in zip(self._columns(ctx, phi, g), values))
+
+    def label(self, model):
+        return super().label(model) + " tilted base"
+
+    def explain(self, model):
+        return (f"the link ending at {model.joint_names[self.joints[0]]} bends under its own weight and what it "
+                f"carries, on a base that is not level (part of its sag sideways)")
 
 
 def bending(ch, k: int, payload_kg: np.ndarray, phi: np.ndarray | None = None, g: np.ndarray | None = None

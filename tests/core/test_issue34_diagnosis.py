@@ -111,7 +111,30 @@ def test_a_spring_under_a_tilted_base_is_named_for_its_joint(seed):
     assert _truth_error(world, d.calibration, info, camp, payload, seed) < TRUTH_LIMIT, where
 
 
-@pytest.mark.parametrize("kind", ["two_joint_springs", "target_remount", "link_thermal_growth", "tilted_base_spring"])
+def test_a_sag_under_a_tilted_base_is_named_for_its_link(seed):
+    """Gravity 3-10 deg off the model's, a link of spray7 bending under it at 3-5x the noise: part of its sag turns
+    sideways. On at least three of five drawn worlds the bending link is named for its link (the form `tilted base`
+    takes the sideways part) and fresh poses are predicted within TRUTH_LIMIT. Before that form the sideways part went
+    to joint scales, springs and plays on the joints before the link and fresh poses were off by 0.58-0.92x the noise
+    at 4x (one world: 4 of 8 seeds failed). Still missed in about one world in nine: J3's link taken for J3's spring
+    (seed 36), J5's link left plain with fresh poses beyond the limit (seed 209); not asserted: that nothing else is
+    named (RESULTS 3.17). arm6's last link A6 is not met (seeds 23, 30: A4 and A5's compliance beside it, fresh poses
+    beyond the limit), so the worlds are spray7's."""
+    spray = [s for s in range(seed, seed + 60) if str(np.random.default_rng((s, 34)).choice(sorted(ROBOTS))) == "spray7"]
+    failed = []
+    for s in spray[:5]:
+        size = float(np.random.default_rng((s, 36)).uniform(3.0, 5.0))
+        model, world, info, camp, payload, where = _draw("tilted_base_sag", s, size=size)
+        d = diagnose(model, camp.meas)
+        links = [f for f in d.findings if is_named(f) and f["kind"] == "link_deflection"]
+        if not (any(set(named_joints(f)[0]) == set(info["joints"]) for f in links)
+                and _truth_error(world, d.calibration, info, camp, payload, s) < TRUTH_LIMIT):
+            failed.append(f"{where}: said {_said(d)}")
+    assert len(failed) <= 2, failed
+
+
+@pytest.mark.parametrize("kind", ["two_joint_springs", "target_remount", "link_thermal_growth", "tilted_base_spring",
+                                  "tilted_base_sag"])
 def test_no_mechanism_means_no_finding(kind, seed):
     model, world, info, camp, payload, where = _draw(kind, seed, size=0.0)
     d = diagnose(model, camp.meas)
