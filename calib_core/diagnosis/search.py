@@ -85,7 +85,8 @@ class _Search:
     rejected: list[dict] = field(default_factory=list)
     deadline: float | None = None  # time.monotonic() after which no further model is fitted (the job's time budget)
     untested: str | None = None  # what the deadline left untested, once it has passed
-    play_memo: dict = field(default_factory=dict)  # the play search per model and joints (shared with _sparser's)
+    play_memo: list = field(default_factory=list)  # the last play search: (model, x_ref, joints, plays), shared
+    # with _sparser's search, whose first round asks again on the same model
 
     def late(self, what: str) -> bool:
         """True once the deadline has passed; the first call after it records `what` was left untested."""
@@ -202,15 +203,14 @@ class _Search:
     def _plays(self, joints: list[int]) -> list[Backlash]:
         """_identified_backlash on `joints` at the current model, once per model: _sparser's first round asks again
         on the same model (the Motoman's search did each play search twice)."""
-        key = (id(self.current), id(self.x_ref), tuple(joints))
-        hit = self.play_memo.get(key)
-        if hit is not None and hit[0] is self.current and hit[1] is self.x_ref:
-            return hit[2]
+        for model, x_ref, asked, plays in self.play_memo:
+            if model is self.current and x_ref is self.x_ref and asked == tuple(joints):
+                return plays
         before = self.untested
         plays = _identified_backlash(self.current, self.meas, self.sigma, self.x_ref, joints,
                                      lambda: self.late("where a play would switch on the joints whose load shows"))
         if self.untested == before:  # complete (a search the deadline cut short is not kept)
-            self.play_memo[key] = (self.current, self.x_ref, plays)
+            self.play_memo[:] = [(self.current, self.x_ref, tuple(joints), plays)]
         return plays
 
     def _sparser(self, c: Candidate, trial: Calibration) -> bool:
@@ -437,7 +437,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         follows = _follows(current, meas, sigma, x_ref, alpha, load_pool)
         held_out_rms = np.sqrt(holdout_ms(current))
         noise_like = basis == "assumed" and held_out_rms / floor <= NOISE_LIKE
-        trial = weighted = None
+        shared = next((f["effect"] for f in follows if f.get("family") == "shared_by_targets"), None)  # no correction
+        trial = weighted = None  # can predict what the targets of a pose share
         if follows or not noise_like:
             fitted = [] if search.late("a smooth correction of what is left") else [
                 fit_residual_field(fit, current, chosen, x_ref,
@@ -447,10 +448,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 if _better(current, t, HOLDOUT_ALPHA):
                     trial = (t, rf)
                     break
-            weighted = _with_pose_noise(trial[0] if trial else current, fit, meas, next(
-                (f["effect"] for f in follows if f.get("family") == "shared_by_targets"), None))
-        shared = any(f.get("family") == "shared_by_targets" for f in follows)  # no correction can predict it
-        if noise_like and (not follows or (not chosen and trial is None and weighted is None and not shared)):
+            weighted = _with_pose_noise(trial[0] if trial else current, fit, meas, shared)
+        if noise_like and (not follows or (not chosen and trial is None and weighted is None and shared is None)):
             new_floor = float(held_out_rms)
             after = f" left after {', '.join(e.label(model) for e in chosen)}" if chosen else ""
             what = ("follows nothing" + (" more" if chosen else "") + ": not time order, no joint, not the load, no "

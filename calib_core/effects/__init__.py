@@ -11,7 +11,7 @@ from ..model import ANGULAR, GEOMETRIC, RobotModel
 from .base import Basis, Context, Effect, apply, has_loads, loads
 from .cartesian_effects import AxisStraightness, LinkDeflection, LinkGrowth, ThermalDrift, TiltedLinkDeflection
 from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance
-from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale, TiltedCompliance, horizontal
+from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale, TiltedCompliance, gravity_across
 from .residual import ResidualField
 from .structure import Probe, SessionStep, TargetStep
 
@@ -47,8 +47,7 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
         out += [JointCompliance((j,)) for j in loaded]
         if model.has_mass and meas.tau is None:
             # a vertical axis carries a load only when the base is not level: its spring under a tilted gravity
-            g = np.asarray(model.gravity, float)
-            across = np.max([np.ptp(loads(chain, meas, None, np.linalg.norm(g) * d), axis=0) for d in horizontal(g)],
+            across = np.max([np.ptp(loads(chain, meas, None, g), axis=0) for g in gravity_across(model.gravity)],
                             axis=0)
             out += [TiltedCompliance((j,)) for j in range(n) if model.moving[j] and not model.prismatic[j]
                     and j not in loaded and across[j] > TILT_LOADED * max(span.max(), 1e-300)]

@@ -9,7 +9,7 @@ from ..kinematics import _cross
 from ..model import ANGULAR, GEOMETRIC
 from ..statics import com_world, gravity_world, segment
 from .base import Basis, Context, Effect
-from .joint_effects import horizontal
+from .joint_effects import gravity_across
 
 
 @dataclass(frozen=True)
@@ -70,12 +70,12 @@ class TiltedLinkDeflection(LinkDeflection):
 
     def _columns(self, ctx: Context, phi: np.ndarray | None = None, g: np.ndarray | None = None) -> list[np.ndarray]:
         """The six bendings (N, 3) mm per unit parameter: carried and own weight under gravity g (default the
-        model's), then the same under gravity of its size along each horizontal direction."""
+        model's), then the same under the model's gravity turned across the base (`gravity_across`)."""
         k, payload = self.joints[0], ctx.meas.payload_kg()
         g = np.asarray(ctx.model.gravity if g is None else g, float)
         out = list(bending(ctx.chain, k, payload, phi, g))
-        for d in horizontal(np.asarray(ctx.model.gravity, float)):
-            out += list(bending(ctx.chain, k, payload, phi, np.linalg.norm(g) * d))
+        for across in gravity_across(ctx.model.gravity):  # the mass steps turn gravity, never scale it
+            out += list(bending(ctx.chain, k, payload, phi, across))
         on = ctx.chain.on_path[k][:, None]
         return [c * on for c in out]
 

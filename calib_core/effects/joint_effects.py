@@ -122,12 +122,14 @@ class JointCompliance(Effect):
                 f"load{also}")
 
 
-def horizontal(g: np.ndarray) -> np.ndarray:
-    """(2, 3): two orthonormal directions across gravity g (3,), the axes a base can tilt about."""
-    z = np.asarray(g, float) / np.linalg.norm(g)
+def gravity_across(g: np.ndarray) -> np.ndarray:
+    """(2, 3) m/s^2: gravity of g's size (3,) along two orthonormal directions across g, what a base tilted about
+    them adds per radian (loads and bending are linear in gravity)."""
+    g = np.asarray(g, float)
+    z = g / np.linalg.norm(g)
     a = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
-    return np.stack([a, np.cross(z, a)])
+    return np.linalg.norm(g) * np.stack([a, np.cross(z, a)])
 
 
 @dataclass(frozen=True)
@@ -135,7 +137,7 @@ class TiltedCompliance(Effect):
     """dq_j = c_j * (load_j under gravity tilted by t): a spring on a joint whose load the model's gravity cannot
     compute, a vertical axis on a base that is not level (issue 34). The load is linear in gravity, so for a small
     tilt t (rad, about the two horizontal axes) it is c t_1 L_1 + c t_2 L_2, L_k the load gravity of the model's size
-    would put on the joint along horizontal direction k (`horizontal`): two parameters per joint, the compliance
+    would put on the joint along horizontal direction k (`gravity_across`): two parameters per joint, the compliance
     times each tilt component (their size, not the split between c and t, is what the data determine)."""
 
     kind = "joint_compliance"
@@ -148,8 +150,7 @@ class TiltedCompliance(Effect):
         return [f"{_offset_unit(model, j)}/{_load_unit(model, j)}" for j in self.joints for _ in "uv"]
 
     def basis(self, ctx: Context) -> Basis:
-        g = np.asarray(ctx.model.gravity, float)
-        across = [loads(ctx.chain, ctx.meas, None, np.linalg.norm(g) * d) for d in horizontal(g)]
+        across = [loads(ctx.chain, ctx.meas, None, g) for g in gravity_across(ctx.model.gravity)]
         N, n = ctx.meas.joints.shape
         b = np.zeros((N, n, 2 * len(self.joints)))
         for i, k in enumerate(self.joints):
