@@ -9,7 +9,7 @@ import numpy as np
 from .. import kinematics as K
 from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedLinkDeflection,
                        has_loads)
-from ..effects.structure import at_gap, session_clock
+from ..effects.structure import STEP_WINDOW, at_gap, session_clock
 from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
 from .findings import _finding, _who
 from .screening import Candidate, _thresholds, screen
@@ -47,8 +47,6 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
 
 STIFFENING = (0.5, 1.5, 4.0, 12.0, 30.0)
 """Stiffening ratios (cubic over linear stiffness at the largest load) tried for a found spring."""
-STEP_WINDOW = 8
-"""Poses either side of a found step among which its exact place is sought."""
 SOFT_PLAY = (0.002, 0.07, 0.15, 0.3, 0.5)
 """Transitions (share of the largest model load) of a sharper or a soft gear play, tried when a play on the
 model's statics is found (the default is 0.02); a play on the identified load has its softness fitted."""

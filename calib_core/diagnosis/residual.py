@@ -3,27 +3,28 @@ offsets, the targets' shared motion as pose noise) and the `unexplained` finding
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats
 
 from .. import shared_motion
 from .. import kinematics as K
-from ..effects import Context, JointCompliance, LoadCompliance, Probe, SessionStep, has_loads
+from ..effects import Context, Effect, JointCompliance, LoadCompliance, Probe, SessionStep, has_loads
 from ..effects.residual import LENGTH_SCALES, ResidualField, field_prior_std
-from ..effects.structure import probes, step_candidates
+from ..effects.structure import probes, step_candidates, steps_near
 from ..identify import Calibration, pose_folds
 from ..io import Measurements
 from .evidence import HOLDOUT_ALPHA, _better, _p, holdout_gain, model_error_mm
 from .findings import _names
 from .fitter import _Fitter
 from .masses import _distributed
-from .screening import _robust_sigma, _weighted_columns, _weighted_system, fold_predictions, screen
+from .screening import Candidate, _robust_sigma, _weighted_columns, _weighted_system, fold_predictions, log_p_beyond, screen
 from .time_structure import _when
 
 
 def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray, alpha: float,
-             load_pool: dict[int, LoadCompliance]) -> list[dict]:
-    """What the residual left follows: time order (a step or a drift), one joint, the load, a workspace
-    region, each a family tested with the same F-test; with several targets per pose, whether they move together
-    (shared_motion's rank test); Bonferroni over the families."""
+             load_pool: dict[int, LoadCompliance], fit: _Fitter, chosen: list[Effect]) -> list[dict]:
+    """What the residual left by `chosen` (fitted: cal) follows: time order (a step or a drift), one joint, the
+    load, a workspace region, each a family tested with the same F-test; with several targets per pose, whether
+    they move together (shared_motion's rank test); Bonferroni over the families."""
     model = cal.model
     fams = probes(model, meas)
     fams += _distributed(load_pool) if load_pool else []
@@ -32,22 +33,28 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
         fams.append(JointCompliance(tuple(loaded)))
     # the whole robot shifted, or one joint's zero (a re-homing: a joint offset moves each pose differently, which
     # a rigid shift of the late poses hardly follows)
-    steps = step_candidates(meas, list(np.flatnonzero(model.moving)))
+    moving = list(np.flatnonzero(model.moving))
+    steps = step_candidates(meas, moving)
     ranked, _ = screen(cal, meas, sigma, fams + steps, x_ref, alpha)
     shared = _shared_motion(cal, meas, sigma, x_ref)
     n_tests = len(fams) + 1 + (shared is not None)
+    step_limit = np.log(alpha / n_tests / max(len(steps), 1))
+    step = next((c for c in ranked if isinstance(c.effect, SessionStep) and c.log_p <= step_limit), None)
+    if step is not None:  # placed exactly, then the simplest kind of step there that the data allow
+        near, _ = screen(cal, meas, sigma, steps_near(meas, moving, step.effect.at), x_ref, alpha)
+        best = _simplest_step(near, step_limit, fit, chosen, x_ref, sigma)
+        ranked = sorted([c for c in ranked if not isinstance(c.effect, SessionStep)] + [best], key=lambda c: c.bic)
     together = next((s for s in shared or [] if s.p_value < alpha / n_tests), None)  # the largest significant
-    out, seen_step = [], False
+    out = []
     for c in ranked:
-        is_step = isinstance(c.effect, SessionStep)
-        limit = np.log(alpha / n_tests / (len(steps) if is_step else 1))
-        if c.log_p > limit or (is_step and seen_step):
+        is_step = isinstance(c.effect, SessionStep)  # one at most: the exactly placed one
+        if c.log_p > (step_limit if is_step else np.log(alpha / n_tests)):
             continue
-        seen_step |= is_step
         if is_step:
-            what = "time order: a step " + _when(c.effect, meas)
+            what = f"time order: a step of {c.effect.stepped(model)} " + _when(c.effect, meas)
             if c.effect.source == "row":
-                what = "row order (no timestamps): a step " + _when(c.effect, meas) + "; were the rows measured in this order?"
+                what = (f"row order (no timestamps): a step of {c.effect.stepped(model)} {_when(c.effect, meas)}; "
+                        "were the rows measured in this order?")
         elif isinstance(c.effect, (LoadCompliance, JointCompliance)):
             what = "the gravity load on the joints"
         else:
@@ -61,6 +68,33 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
                  "family": "shared_by_targets", "effect": together}
         out.insert(next((i for i, f in enumerate(out) if f["p_value"] > together.p_value), len(out)), entry)
     return out
+
+
+def _simplest_step(near: list[Candidate], limit: float, fit: _Fitter, chosen: list[Effect], x_ref: np.ndarray,
+                   sigma: np.ndarray) -> Candidate:
+    """The step among `near` (screened, best first) with the fewest parameters at the best one's place unless the
+    best explains more with its extra parameters at log p below `limit` (the bar a step has to pass at all). A large
+    step is judged by fits, not tangents: a last joint's zero moves the target along a chord, which the target's
+    offset on the flange fits exactly and the joint's tangent does not (arm6's A6 re-homed by 25x the noise: 0.25 %
+    of the residual left by the tangent, 0.16 % by the target step)."""
+    best = near[0]
+    simpler = [c for c in near if c.effect.at == best.effect.at and c.dof < best.dof]
+    if not simpler:
+        return best
+    small = min(simpler, key=lambda c: c.bic)
+    if log_p_beyond(best, small) > limit:
+        return small
+    saved = list(fit.last)
+    rss = [_weighted_rss(fit(tuple(chosen) + (c.effect,), x_ref, folds=1), sigma) for c in (small, best)]
+    fit.last[:] = saved
+    extra = best.dof - small.dof
+    F = (max(rss[0] - rss[1], 0.0) / extra) / max(rss[1] / best.residual_dof, 1e-300)
+    return small if stats.f.logsf(F, extra, best.residual_dof) > limit else best
+
+
+def _weighted_rss(cal: Calibration, sigma: np.ndarray) -> float:
+    """Sum of the squared residual in units of each pose's sigma, with the fit's robust weights."""
+    return float(np.sum(cal.solution.weights[:, None] * (cal.solution.residual / sigma[:, None]) ** 2))
 
 
 def _shared_motion(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray

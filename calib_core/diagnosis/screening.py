@@ -31,6 +31,8 @@ class Candidate:
     explained: float  # fraction of the weighted residual sum of squares it explains
     beyond_chance: float  # the same less the share its degrees of freedom would explain of pure noise
     bic: float  # Bayesian information criterion of the model with it: ranks candidates past p underflow
+    dof: int  # the F-test's degrees of freedom: its columns the current model cannot absorb (+ search_dof)...
+    residual_dof: int  # ...and the rows left with it
     effect_rms_mm: float  # RMS of the part of its displacement the current model cannot absorb
     regressor: np.ndarray
     regressor_label: str
@@ -163,7 +165,7 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
         out.append(Candidate(
             effect=e, label=e.label(model), p_value=float(np.exp(log_p)), log_p=log_p, F=float(F),
             explained=drss / rss, beyond_chance=drss / rss - k_test / (m - p),
-            bic=m * np.log(max(rss - drss, 1e-300) / m) + k_test * np.log(m),
+            bic=m * np.log(max(rss - drss, 1e-300) / m) + k_test * np.log(m), dof=k_test, residual_dof=dof2,
             effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
             regressor=b.regressor, regressor_label=b.regressor_label,
             projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
@@ -176,6 +178,18 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     s2 = np.clip(np.linalg.eigvalsh(G), 0.0, None)  # Cp's squared singular values (no SVD of the tall Cp)
     chance = float(np.sum((s2 / (s2 + 1.0 / field.prior_std**2)) ** 2))  # E|H e|^2 / sigma^2 = trace(H^2)
     return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss - chance / (m - p)
+
+
+def log_p_beyond(big: Candidate, small: Candidate) -> float:
+    """Log p-value of the F-test that `big` explains more of the same residual than `small` with its extra degrees
+    of freedom (exact where small's columns lie in big's span: a last joint's zero in the target's offset on the
+    flange); 0 when it has none or explains no more."""
+    extra = big.dof - small.dof
+    gain = big.explained - small.explained
+    if extra <= 0 or gain <= 0:
+        return 0.0
+    return float(stats.f.logsf((gain / extra) / max((1.0 - big.explained) / big.residual_dof, 1e-300), extra,
+                               big.residual_dof))
 
 
 def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:

@@ -434,7 +434,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     named = current  # the model of the named causes (what `unexplained` starts from)
     if unexplained and structure_left:
         report(0.85, "looking at what the residual left follows")
-        follows = _follows(current, meas, sigma, x_ref, alpha, load_pool)
+        follows = _follows(current, meas, sigma, x_ref, alpha, load_pool, fit, chosen)
         held_out_rms = np.sqrt(holdout_ms(current))
         noise_like = basis == "assumed" and held_out_rms / floor <= NOISE_LIKE
         shared = next((f["effect"] for f in follows if f.get("family") == "shared_by_targets"), None)  # no correction

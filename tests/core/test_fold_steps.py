@@ -56,7 +56,7 @@ def test_candidates_adding_the_same_displacement_share_one_decision():
 
     def cand(f, p, F, effect):
         return Candidate(effect=effect, label="", p_value=0.0, log_p=0.0, F=F, explained=0.1, beyond_chance=0.1,
-                         bic=0.0, effect_rms_mm=1.0, regressor=None, regressor_label="", projected_residual_mm=p,
+                         bic=0.0, dof=1, residual_dof=40, effect_rms_mm=1.0, regressor=None, regressor_label="", projected_residual_mm=p,
                          fitted_mm=f)
     a = cand(fitted, projected, 40.0, JointCompliance((1,)))
     assert _same_columns(a, cand(fitted * (1 + 1e-5), projected, 40.0001, JointCompliance((2,))))
