@@ -14,7 +14,8 @@ One concept per module, each importing only those above it in this list (search 
 fitter's _Fitter for type checking only):
     noise           the noise floor a perfect model would leave, and how far the residual stands above it
     evidence        the held-out tests that keep a cause, the de-noised model error
-    screening       the F-test of every candidate at the current model, the Bonferroni thresholds
+    screening       the F-test of every candidate at the current model, the Bonferroni thresholds, the share a
+                    smooth field explains beyond chance
     time_structure  where a step sits in time, flagged poses that come in runs
     plays           a gear play's switch read off the residual, and its doubt
     fitter          the one fit the diagnosis uses (_Fitter)
@@ -31,10 +32,10 @@ from .findings import (PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, SIGNIFICANT_STD,
 from .lookalikes import INDISTINGUISHABLE
 from .noise import noise_floor_mm
 from .result import Diagnosis, explain
-from .screening import screen
+from .screening import field_share, screen
 from .search import ALPHA, NAMED_SHARE, diagnose
 from .time_structure import runs_probability
 
 __all__ = ["ALPHA", "INDISTINGUISHABLE", "NAMED_SHARE", "PLAUSIBLE_TRAVEL_MM", "PLAUSIBLE_TURN_RAD", "SIGNIFICANT_STD",
-           "Diagnosis", "diagnose", "explain", "follows_what", "is_named", "holdout_gain", "holdout_ms", "named_joints",
+           "Diagnosis", "diagnose", "explain", "field_share", "follows_what", "is_named", "holdout_gain", "holdout_ms", "named_joints",
            "noise_floor_mm", "present_findings", "runs_probability", "screen"]

@@ -119,7 +119,7 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     return Candidate(**{**c.__dict__, "effect": best, "label": best.label(model)}), t, alike
 
 
-def _refine_step(c, trial, chosen, current, sigma, model, meas, fit, x_ref, alpha):
+def _refine_step(c, trial, chosen, current, sigma, model, meas, fit, x_ref):
     """Place an accepted step exactly: every gap between consecutive poses in time order near the searched
     one is scored by how much of the current model's weighted residual it removes at its linearisation (screen;
     a nonlinear fit per gap cost Hilti 17 fits per step), the best is fitted and kept if
@@ -128,8 +128,8 @@ def _refine_step(c, trial, chosen, current, sigma, model, meas, fit, x_ref, alph
     order = np.sort(clock)
     k = int(np.searchsorted(order, c.effect.at))
     gaps = range(max(k - STEP_WINDOW, 1), min(k + STEP_WINDOW, len(order) - 1) + 1)
-    ranked, _ = screen(current, meas, sigma, [dataclasses.replace(c.effect, **at_gap(order, i, c.effect.source))
-                                              for i in gaps], x_ref, alpha)
+    ranked = screen(current, meas, sigma, [dataclasses.replace(c.effect, **at_gap(order, i, c.effect.source))
+                                           for i in gaps], x_ref)
     best = max(ranked, key=lambda a: a.explained, default=None)
     if best is None or best.effect == c.effect:
         return c, trial
@@ -162,7 +162,7 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
         rest = [e for e in pool if _cause(e) not in taken]
         if chosen[k - 1] not in rest:
             rest.append(chosen[k - 1])
-        ranked, _ = screen(base, meas, sigma, rest, current.x, alpha)
+        ranked = screen(base, meas, sigma, rest, current.x)
         mine = next((c for c in ranked if c.effect == chosen[k - 1]), None)
         if mine is None:
             continue

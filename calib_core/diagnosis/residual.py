@@ -35,14 +35,14 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
     # a rigid shift of the late poses hardly follows)
     moving = list(np.flatnonzero(model.moving))
     steps = step_candidates(meas, moving)
-    ranked, _ = screen(cal, meas, sigma, fams + steps, x_ref, alpha)
+    ranked = screen(cal, meas, sigma, fams + steps, x_ref)
     shared = _shared_motion(cal, meas, sigma, x_ref)
     n_tests = len(fams) + 1 + (shared is not None)
     step_limit = np.log(alpha / n_tests / max(len(steps), 1))
     step = next((c for c in ranked if isinstance(c.effect, SessionStep) and c.log_p <= step_limit), None)
     if step is not None:  # placed exactly, then the simplest kind of step there that the data allow
-        near, _ = screen(cal, meas, sigma, steps_near(meas, moving, step.effect.at), x_ref, alpha)
-        best = _simplest_step(near, step_limit, fit, chosen, x_ref, sigma)
+        near = screen(cal, meas, sigma, steps_near(meas, moving, step.effect.at), x_ref)
+        best = _simplest_step(near, step_limit, fit, chosen, cal, x_ref, sigma)
         ranked = sorted([c for c in ranked if not isinstance(c.effect, SessionStep)] + [best], key=lambda c: c.bic)
     together = next((s for s in shared or [] if s.p_value < alpha / n_tests), None)  # the largest significant
     out = []
@@ -70,8 +70,8 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
     return out
 
 
-def _simplest_step(near: list[Candidate], limit: float, fit: _Fitter, chosen: list[Effect], x_ref: np.ndarray,
-                   sigma: np.ndarray) -> Candidate:
+def _simplest_step(near: list[Candidate], limit: float, fit: _Fitter, chosen: list[Effect], cal: Calibration,
+                   x_ref: np.ndarray, sigma: np.ndarray) -> Candidate:
     """The step among `near` (screened, best first) with the fewest parameters at the best one's place unless the
     best explains more with its extra parameters at log p below `limit` (the bar a step has to pass at all). A large
     step is judged by fits, not tangents: a last joint's zero moves the target along a chord, which the target's
@@ -85,7 +85,8 @@ def _simplest_step(near: list[Candidate], limit: float, fit: _Fitter, chosen: li
     if log_p_beyond(best, small) > limit:
         return small
     saved = list(fit.last)
-    rss = [_weighted_rss(fit(tuple(chosen) + (c.effect,), x_ref, folds=1), sigma) for c in (small, best)]
+    rss = [_weighted_rss(fit(tuple(chosen) + (c.effect,), x_ref, folds=1, model_error_mm=cal.model_error_mm), sigma)
+           for c in (small, best)]  # weighted as cal is: one solve each
     fit.last[:] = saved
     extra = best.dof - small.dof
     F = (max(rss[0] - rss[1], 0.0) / extra) / max(rss[1] / best.residual_dof, 1e-300)

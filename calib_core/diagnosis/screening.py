@@ -124,15 +124,10 @@ def _weighted_columns(e: Effect, ctx: Context, Jq: np.ndarray, sigma: np.ndarray
     return (C / sigma[:, None, None]).reshape(-1, k), b
 
 
-def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[Effect], x_ref: np.ndarray,
-           alpha: float) -> tuple[list[Candidate], float]:
-    """Score every candidate by the F-test of adding it to the current model (linearised at its solution).
-
-    Also returns the share of the residual a smooth joint-space field (ridge) explains beyond chance (less the
-    share it fits of pure noise, trace(H^2) / dof of its hat matrix H): a named cause that explains far less
-    than the field beyond chance is only picking up part of a broader structure. Without the correction a field
-    of a few hundred effective parameters "explains" 75 % of a residual that is mostly noise, and a real cause
-    half the noise's size is thrown away."""
+def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[Effect], x_ref: np.ndarray
+           ) -> list[Candidate]:
+    """Score every candidate by the F-test of adding it to the current model (linearised at its solution), best
+    (lowest BIC) first."""
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
@@ -169,15 +164,26 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
             effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
             regressor=b.regressor, regressor_label=b.regressor_label,
             projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
+    return sorted(out, key=lambda c: c.bic)
+
+
+def field_share(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> float:
+    """The share of the weighted residual a smooth joint-space field (ridge) explains beyond chance (less the share
+    it fits of pure noise, trace(H^2) / dof of its hat matrix H): a named cause that explains far less than the
+    field beyond chance is only picking up part of a broader structure. Without the correction a field of a few
+    hundred effective parameters "explains" 75 % of a residual that is mostly noise, and a real cause half the
+    noise's size is thrown away."""
+    sigma = _robust_sigma(cal, sigma)
+    r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
+    ctx = Context(cal.model, K.Chain(cal.model, x_ref, meas.joints, cal.R0, meas.labels), meas)
     field = ResidualField((), length_scale=1.0, prior_std=max(PRIOR_STD_MM, 2.0 * cal.metrics()["holdout_rms_mm"]))
-    Cw, _ = _weighted_columns(field, ctx, Jq, sigma)
+    Cw, _ = _weighted_columns(field, ctx, chain.joint_jacobian(), sigma)
     Cp = Cw - Q @ (Q.T @ Cw)
-    ridge = np.eye(Cp.shape[1]) / field.prior_std**2
     G = Cp.T @ Cp
-    fit = Cp @ np.linalg.solve(G + ridge, Cp.T @ r)
+    fit = Cp @ np.linalg.solve(G + np.eye(len(G)) / field.prior_std**2, Cp.T @ r)
     s2 = np.clip(np.linalg.eigvalsh(G), 0.0, None)  # Cp's squared singular values (no SVD of the tall Cp)
     chance = float(np.sum((s2 / (s2 + 1.0 / field.prior_std**2)) ** 2))  # E|H e|^2 / sigma^2 = trace(H^2)
-    return sorted(out, key=lambda c: c.bic), float(fit @ fit) / rss - chance / (m - p)
+    return float(fit @ fit) / float(r @ r) - chance / (len(r) - Q.shape[1])
 
 
 def log_p_beyond(big: Candidate, small: Candidate) -> float:

@@ -28,7 +28,7 @@ from .plays import (_identified_backlash, _identified_play, _play_not_outliers, 
                     _with_switch_doubt)
 from .residual import _drive_field, _follows, _unexplained_finding, _with_pose_noise, field_scale
 from .result import Diagnosis, explain
-from .screening import Candidate, _thresholds, linear_holdout, screen
+from .screening import Candidate, _thresholds, field_share, linear_holdout, screen
 from .time_structure import _flagged_in_runs, _outlier_note
 
 ALPHA = 0.01
@@ -113,7 +113,8 @@ class _Search:
         model, meas, sigma, alpha, fit, x_ref = self.model, self.meas, self.sigma, self.alpha, self.fit, self.x_ref
         taken = {_cause(e) for e in self.chosen}
         pool = _on_carried_masses([e for e in self.pool if _cause(e) not in taken], self.chosen)
-        ranked, field_share = screen(self.current, meas, sigma, pool, x_ref, alpha)
+        ranked = screen(self.current, meas, sigma, pool, x_ref)
+        field = []  # the smooth field's share, computed once a single-joint candidate needs it
         thresholds = _thresholds(pool, alpha)
         # a play whose switch follows the identified load, on the joints where a load-driven cause shows
         active = {c.effect.joints[0] for c in ranked if len(c.effect.joints) == 1
@@ -130,7 +131,7 @@ class _Search:
         if plays:
             pool += plays
             thresholds = _thresholds(pool, alpha)
-            ranked = sorted(ranked + screen(self.current, meas, sigma, plays, x_ref, alpha)[0], key=lambda c: c.bic)
+            ranked = sorted(ranked + screen(self.current, meas, sigma, plays, x_ref), key=lambda c: c.bic)
         linear = None  # linear_holdout at the current model, made once a candidate needs it
         refused: list[Candidate] = []  # refused on held-out poses after a full fit, this round
         significant = np.array([c.log_p <= thresholds[id(c.effect)] for c in ranked], bool)
@@ -142,9 +143,11 @@ class _Search:
                 return False
             who = _who(c.effect, model)
             broad = isinstance(c.effect, SessionStep) or len(c.effect.joints) > 1  # spread over the arm already
-            if c.beyond_chance < NAMED_SHARE * field_share and not broad:
+            if not broad and not field:
+                field.append(field_share(self.current, meas, sigma, x_ref))
+            if not broad and c.beyond_chance < NAMED_SHARE * field[0]:
                 self.rejected.append({**who, "why": f"explains {100 * c.beyond_chance:.0f} % of the residual beyond "
-                                                    f"chance where a smooth field explains {100 * field_share:.0f} %: "
+                                                    f"chance where a smooth field explains {100 * field[0]:.0f} %: "
                                                     f"part of a broader structure"})
                 continue
             excess = holdout_ms(self.current) - self.floor**2
@@ -188,7 +191,7 @@ class _Search:
             c, trial, forms = _refine(c, trial, others, self.load_pool, play_pool, model, fit, x_ref)
             alike = _merge_alike(alike, forms)
             if isinstance(c.effect, SessionStep):
-                c, trial = _refine_step(c, trial, others, self.current, sigma, model, meas, fit, x_ref, alpha)
+                c, trial = _refine_step(c, trial, others, self.current, sigma, model, meas, fit, x_ref)
             elif isinstance(c.effect, LoadCompliance) and len(c.effect.joints) > 1 and self._sparser(c, trial):
                 return True
             keep = [i for i in mine if _cause(self.chosen[i]) != _cause(c.effect)]  # without the form it replaced
@@ -287,7 +290,7 @@ class _Search:
                                       f"{ht:.3f} mm, paired p = {p:.1e})"})
                 continue
             base = self.fit(chosen[:-1], trial.x)  # what the spread form adds, for its finding's figures
-            ranked, _ = screen(base, self.meas, self.sigma, [chosen[-1]], base.x, self.alpha)
+            ranked = screen(base, self.meas, self.sigma, [chosen[-1]], base.x)
             if not ranked:
                 continue
             self.rejected += [{**_who(self.chosen[i], self.model), "why": f"part of {e.label(self.model)}, which "
@@ -345,7 +348,7 @@ class _Search:
                 continue
             sig, k, narrow, chosen, trial, hb, ht = found
             base = self.fit(chosen[:i] + chosen[i + 1:], trial.x)  # what the narrowed form adds, for its figures
-            ranked, _ = screen(base, self.meas, self.sigma, [narrow], base.x, self.alpha)
+            ranked = screen(base, self.meas, self.sigma, [narrow], base.x)
             if not ranked:
                 continue
             weak = ", ".join(self.model.joint_names[j] for j in e.joints if j not in sig)

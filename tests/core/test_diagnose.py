@@ -7,8 +7,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calib_core.diagnosis import (ALPHA, NAMED_SHARE, PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, diagnose, holdout_gain,
-                                  holdout_ms, named_joints, noise_floor_mm, runs_probability, screen)
+from calib_core.diagnosis import (ALPHA, NAMED_SHARE, PLAUSIBLE_TRAVEL_MM, PLAUSIBLE_TURN_RAD, diagnose, field_share,
+                                  holdout_gain, holdout_ms, named_joints, noise_floor_mm, runs_probability, screen)
 from calib_core.diagnosis.findings import _judge_sizes
 from calib_core.diagnosis.fitter import _Fitter
 from calib_core.diagnosis.masses import _identify_masses
@@ -395,7 +395,7 @@ def test_a_smooth_field_explains_no_noise_beyond_chance(seed):
     0.023, extremes -0.057 and 0.045."""
     meas = null_world(SPRAY, seed).campaign(n=150).meas
     geo = identify(SPRAY, meas)
-    _, share = screen(geo, meas, geo.sigma_mm, [], geo.x, ALPHA)
+    share = field_share(geo, meas, geo.sigma_mm, geo.x)
     assert abs(share) < 0.1, (seed, share)
 
 
@@ -411,7 +411,7 @@ def test_a_cause_half_the_noise_is_not_taken_for_part_of_a_field(seed):
     pool = [e for e in candidates(SPRAY, meas)[0]
             if isinstance(e, CyclicJointError) and e.joints == (j,) and e.harmonic == h]
     geo = identify(SPRAY, meas)
-    ranked, share = screen(geo, meas, geo.sigma_mm, pool, geo.x, ALPHA)
+    ranked, share = screen(geo, meas, geo.sigma_mm, pool, geo.x), field_share(geo, meas, geo.sigma_mm, geo.x)
     assert len(ranked) == 1, (seed, info["parameters"])
     assert ranked[0].beyond_chance >= NAMED_SHARE * share, (seed, size, ranked[0].beyond_chance, share)
 
