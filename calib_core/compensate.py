@@ -377,7 +377,7 @@ def _rows(columns: Measurements | None, idx: np.ndarray, q: np.ndarray) -> Measu
     if columns is None:
         return Measurements(joints=q, points=np.zeros((len(q), 3)))
     return Measurements(joints=q, points=np.zeros((len(q), 3)), timestamp=pick(columns.timestamp),
-                        temperature=pick(columns.temperature), payload=pick(columns.payload),
+                        sequence=pick(columns.sequence), temperature=pick(columns.temperature), payload=pick(columns.payload),
                         target=pick(columns.target), setup=pick(columns.setup), setup_names=columns.setup_names,
                         tau=pick(columns.tau))
 

@@ -19,7 +19,10 @@ from .kinematics import Labels
 from .model import (LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM, SIGMA_RANGE_MM, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S,
                     TIMESTAMP_RANGE_UTC, RobotModel, name_problem, revolute_bound)
 
-OPTIONAL = ("point", "timestamp", "temperature", "payload", "sigma", "target", "setup", "qw", "qx", "qy", "qz")
+OPTIONAL = ("point", "timestamp", "sequence", "temperature", "payload", "sigma", "target", "setup", "qw", "qx", "qy",
+            "qz")
+MAX_SEQUENCE = 1e12
+"""|sequence|: a measurement's place in the session's order (a count, a pose index), never beyond this."""
 QUATERNION = ("qw", "qx", "qy", "qz")
 MAX_TAU = 1e6
 """|tau_<joint>|: 1 MN*m or 1 MN, far beyond any robot joint."""
@@ -70,6 +73,7 @@ class Measurements:
     orientation: np.ndarray | None = None  # (N, 4) unit quaternion w, x, y, z of the target frame; NaN: a point row
     tau: np.ndarray | None = None  # (N, n) measured joint torque N*m / force N per model row; NaN where not given
     sigma_source: str | None = None  # where `sigma` came from when not from the CSV (6-D rows: the instrument preset)
+    sequence: np.ndarray | None = None  # (N,) the order the poses were measured in (any increasing numbering)
 
     @property
     def n_poses(self) -> int:
@@ -125,7 +129,8 @@ class Measurements:
         return Measurements(self.joints[idx], self.points[idx], ids, pick(self.timestamp),
                             pick(self.temperature), pick(self.payload), pick(self.sigma), self.instrument,
                             target=pick(self.target), setup=pick(self.setup), setup_names=self.setup_names,
-                            orientation=pick(self.orientation), tau=pick(self.tau), sigma_source=self.sigma_source)
+                            orientation=pick(self.orientation), tau=pick(self.tau), sigma_source=self.sigma_source,
+                            sequence=pick(self.sequence))
 
 
 def _decode(data: bytes | str) -> str:
@@ -412,7 +417,7 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
     unit = model.length_unit
     row_of = {name: j for j, name in enumerate(model.joint_names)}
     joint_cols = act + [c for c in coupled if c in col]
-    numeric = joint_cols + ["x", "y", "z"] + [c for c in ("temperature", "payload", "sigma") if c in col]
+    numeric = joint_cols + ["x", "y", "z"] + [c for c in ("sequence", "temperature", "payload", "sigma") if c in col]
     values = {c: np.empty(len(rows) - 1) for c in numeric}
     optional_numeric = {c: np.full(len(rows) - 1, np.nan) for c in (*QUATERNION, *taus) if c in col}
     target_ix = np.zeros(len(rows) - 1, int) if "target" in col else None
@@ -425,7 +430,7 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
                   None if model.prismatic[row_of[c]] else rev_max) for c in joint_cols}
     checks.update({c: (-point_max, point_max, True, None) for c in ("x", "y", "z")})
     checks.update({"sigma": (sig_lo, sig_hi, True, None), "payload": (0.0, MAX_PAYLOAD_KG, True, None),
-                   "temperature": (t_lo, t_hi, True, None)})
+                   "temperature": (t_lo, t_hi, True, None), "sequence": (-MAX_SEQUENCE, MAX_SEQUENCE, True, None)})
     fast = _numeric_columns(rows[1:], [ln for ln, _ in lines[1:]], len(header), col, numeric, checks, row_of, beyond)
     if fast is not None:
         values.update(fast)
@@ -466,6 +471,9 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
                     err(line, c, raw, f"payload must be between 0 and {MAX_PAYLOAD_KG:g} kg")
             elif c == "temperature" and not t_lo <= v <= t_hi:
                 err(line, c, raw, f"temperature outside {t_lo:g}..{t_hi:g} deg C")
+            elif c == "sequence" and not abs(v) <= MAX_SEQUENCE:
+                err(line, c, raw, f"sequence must be at most {MAX_SEQUENCE:g} in size (the measurement's place "
+                                  "in the session's order)")
         for c, arr in optional_numeric.items():
             raw = fields[col[c]].strip()
             if not raw:
@@ -551,7 +559,7 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
                 tau[:, j] = optional_numeric[c]
     points = np.column_stack([values[c] for c in ("x", "y", "z")]) * ls
     return Measurements(
-        joints=joints, points=points, point_ids=ids, timestamp=stamps,
+        joints=joints, points=points, point_ids=ids, timestamp=stamps, sequence=values.get("sequence"),
         temperature=values.get("temperature"), payload=values.get("payload"),
         sigma=values["sigma"] * ls if "sigma" in values else None, instrument=instrument,
         out_of_limits=out_of_limits, target=target_ix if model.n_targets > 1 else None, setup=setup,
@@ -573,7 +581,8 @@ def write_measurements(meas: Measurements, model: RobotModel) -> str:
         data.append(np.array([datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="seconds")
                               for t in meas.timestamp], dtype=object))
         fmt.append("{}")
-    for name, arr, f in (("temperature", meas.temperature, "{:.3f}"), ("payload", meas.payload, "{:.4g}"),
+    for name, arr, f in (("sequence", meas.sequence, "{:.15g}"), ("temperature", meas.temperature, "{:.3f}"),
+                         ("payload", meas.payload, "{:.4g}"),
                          ("sigma", None if meas.sigma is None else meas.sigma / ls, "{:.6g}")):
         if arr is not None:
             cols.append(name)

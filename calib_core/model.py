@@ -60,7 +60,7 @@ MAX_NAME_CHARS = 200
 MAX_JOINT_NAME_CHARS = 100
 MAX_JSON_DEPTH = 20
 """nesting depth of a model document (the contract's own is 4)."""
-RESERVED_COLUMNS = ("point", "x", "y", "z", "timestamp", "temperature", "payload", "payload_kg", "sigma",
+RESERVED_COLUMNS = ("point", "x", "y", "z", "timestamp", "sequence", "temperature", "payload", "payload_kg", "sigma",
                     "target", "setup", "qw", "qx", "qy", "qz")
 """The measurement CSV's own columns (contract sections 2 and 5): no joint may be named like one."""
 RESERVED_PREFIXES = ("tau_",)

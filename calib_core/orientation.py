@@ -80,7 +80,8 @@ def with_orientation(model: RobotModel, meas: Measurements, lever_mm: float = LE
                                   for a, rr in zip(AXES * (len(add_rows) // 3), add_rows) for i in rr]
     out = Measurements(joints=np.r_[meas.joints, np.concatenate(add_joints)],
                        points=np.r_[meas.points, np.concatenate(add_points)], point_ids=ids,
-                       timestamp=pick(meas.timestamp), temperature=pick(meas.temperature), payload=pick(meas.payload),
+                       timestamp=pick(meas.timestamp), sequence=pick(meas.sequence),
+                       temperature=pick(meas.temperature), payload=pick(meas.payload),
                        sigma=np.r_[sig_pt, np.concatenate(add_sigma)], instrument=meas.instrument,
                        target=np.r_[target, np.concatenate(add_target)], setup=pick(meas.setup),
                        setup_names=meas.setup_names, orientation=None, tau=pick(meas.tau),

@@ -90,7 +90,8 @@ def _misplaced(cal: Calibration, joints, columns: Measurements | None) -> np.nda
     for e, v in switches:
         if isinstance(e, SessionStep):
             P = e.misplaced(ctx)
-            other = dataclasses.replace(meas, timestamp=np.full(len(q), np.inf))  # every pose after the step
+            every = np.full(len(q), np.inf)
+            other = dataclasses.replace(meas, timestamp=every, sequence=every)  # every pose after the step
             Phi_q, Phi_p = effect_bases(cal.model, other, [e], x, cal.R0)
             d = np.einsum("nij,njk,k->ni", Jq, Phi_q, v) + np.einsum("nik,k->ni", Phi_p, v)
         else:

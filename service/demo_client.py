@@ -153,6 +153,8 @@ class Api:
                 body["temperature"] = meas.temperature[rows].tolist()
             if meas.timestamp is not None:
                 body["timestamp"] = [datetime.fromtimestamp(t, timezone.utc).isoformat() for t in meas.timestamp[rows]]
+            if meas.sequence is not None:
+                body["sequence"] = meas.sequence[rows].tolist()
             r = self.call("POST", f"/calibrations/{cal_id}/predict", json=body).json()
             out[rows] = np.asarray(r["positions"], float) * LENGTH_TO_MM[model.length_unit]
         return out

@@ -29,7 +29,10 @@ def _who(e: Effect, model: RobotModel) -> dict:
 
 
 def _said(a: dict) -> str:
-    """A cause in prose: kind, joints and harmonic ('cyclic_joint_error L1 h2')."""
+    """A cause in prose: kind, joints and harmonic ('cyclic_joint_error L1 h2'); a step by its form (its kind,
+    `unexplained`, says nothing: 'step[robot @ 437]')."""
+    if a["kind"] == "unexplained" and a.get("form"):
+        return a["form"]
     return " ".join([a["kind"], ",".join(a["joints"])] + ([f"h{a['harmonic']}"] if "harmonic" in a else [])).strip()
 
 
@@ -72,13 +75,15 @@ PLAUSIBLE_TRAVEL_MM = 10.0
 
 def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> None:
     """Marks a finding whose form needs an unphysical size at a calibration pose ("physical": false, and its
-    evidence says so): held-out poses confirmed it, so it stays in the model, but its values are not the joint's."""
+    evidence says so): held-out poses confirmed it, so it stays in the model, but its values are not the joint's.
+    A step in time order has no such bound: a joint re-homed or a tracker moved can be off by any amount (the
+    Motoman's T1 by 2.7 deg)."""
     model, ctx = cal.model, _basis_context(cal, meas)
     for f in findings:
         names = {p["name"] for p in f.get("parameters", [])}
         sizes = []
         for e, v in zip(cal.effects, cal.effect_values):
-            if names & set(e.parameter_names(model)):
+            if names & set(e.parameter_names(model)) and not isinstance(e, SessionStep):
                 for j, t in e.turns(ctx, v):
                     big = float(np.abs(t).max())
                     if big > (PLAUSIBLE_TRAVEL_MM if model.prismatic[j] else PLAUSIBLE_TURN_RAD):
@@ -179,8 +184,8 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
     negative joints are all within SIGNIFICANT_STD std of zero stays physical."""
     table = {p["name"]: p for p in cal.parameters()}
     for f in findings:
-        if f.get("kind") in ("unexplained", "correction") or not f.get("parameters"):
-            continue
+        if f.get("kind") == "correction" or "correction" in f or not f.get("parameters"):
+            continue  # the residual's `unexplained` (with the correction it kept); a step is presented as a cause
         params = f["parameters"] = [{**p, **table.get(p["name"], {})} for p in f["parameters"]]
         sized = all(p.get("std") is not None and np.isfinite(p["std"]) and p["std"] > 0 for p in params)
         if params and sized and not any(abs(_beyond(p)) > SIGNIFICANT_STD for p in params):
@@ -240,9 +245,11 @@ def _chain(findings: list[dict], geo: Calibration, named: Calibration, fit: _Fit
     before being the one its predecessor ends at (the geometric model's for the first, the named causes' model for
     the last, where `unexplained` starts). The search judged each cause against the model of its moment, and a
     revisit against the final model without it, so its figures did not chain (the Motoman: cause 1 ended at 1.438
-    mm, cause 2 started at 1.527). Costs one refit per named cause but the last; with `model` None (the time budget
-    is spent) the search's own figures stay. Appends the held-out sentence to each finding's evidence."""
-    named_f = [f for f in findings if f.get("kind") != "unexplained"]
+    mm, cause 2 started at 1.527). A step in time order is in the model like a named cause and chains too (only the
+    residual's `unexplained`, which carries `correction`, starts from the named causes' model). Costs one refit per
+    finding but the last; with `model` None (the time budget is spent) the search's own figures stay. Appends the
+    held-out sentence to each finding's evidence."""
+    named_f = [f for f in findings if f.get("kind") != "unexplained" or "correction" not in f]
     steps = None
     if model is not None and named_f:
         effects, used, steps = list(named.effects), set(), [geo]

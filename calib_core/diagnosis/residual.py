@@ -16,7 +16,8 @@ from .evidence import HOLDOUT_ALPHA, _better, _p, holdout_gain, model_error_mm
 from .findings import _names
 from .fitter import _Fitter
 from .masses import _distributed
-from .screening import Candidate, _robust_sigma, _weighted_columns, _weighted_system, fold_predictions, log_p_beyond, screen
+from .screening import (Candidate, _robust_sigma, _weighted_columns, _weighted_system, fold_predictions, log_p_beyond,
+                        screen)
 from .time_structure import _when
 
 
@@ -52,6 +53,8 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
             continue
         if is_step:
             what = f"time order: a step of {c.effect.stepped(model)} " + _when(c.effect, meas)
+            if c.effect.source == "sequence":
+                what = f"measurement order (sequence): a step of {c.effect.stepped(model)} " + _when(c.effect, meas)
             if c.effect.source == "row":
                 what = (f"row order (no timestamps): a step of {c.effect.stepped(model)} {_when(c.effect, meas)}; "
                         "were the rows measured in this order?")

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..effects import Backlash, Effect, JointCompliance, LoadCompliance, SessionStep, candidates, on_joints
 from ..effects.residual import LENGTH_SCALES, fit_residual_field
-from ..effects.structure import step_candidates
+from ..effects.structure import session_clock, step_candidates
 from ..identify import Calibration, identify
 from ..io import Measurements
 from ..model import RobotModel
@@ -415,8 +415,9 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     load_pool = _load_pool(geo, meas, sigma, x_ref)
     named += list(load_pool.values()) + _distributed(load_pool) + _lateral(geo, meas, sigma, x_ref)
     moving = [j for j in range(model.n_joints) if np.ptp(meas.joints[:, j]) > 1e-3]
-    # a step is a model extension only where the data say when each pose was measured; row order is a guess
-    steps = step_candidates(meas, moving) if meas.timestamp is not None else []
+    # a step is a model extension only where the data say when (or in which order) each pose was measured; the row
+    # order is a guess
+    steps = step_candidates(meas, moving) if session_clock(meas)[1] != "row" else []
     search = _Search(model, meas, sigma, alpha, fit, floor, named + steps, load_pool, geo, geo.x, deadline=deadline)
     search.run(report)
     search.revisit(report)

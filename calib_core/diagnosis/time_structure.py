@@ -18,11 +18,12 @@ def _when(e: Effect, meas: Measurements) -> str:
     """Where a step sits in the session, for people: the time and the poses on either side."""
     if not isinstance(e, SessionStep):
         return ""
-    if e.source == "time":
-        order = np.argsort(meas.timestamp)
-        t = np.asarray(meas.timestamp)[order]
-        k = int(np.searchsorted(t, e.at))
-        stamp = datetime.fromtimestamp(e.at, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    clock, source = session_clock(meas)
+    if e.source == source != "row":
+        order = np.argsort(clock, kind="stable")
+        k = int(np.searchsorted(clock[order], e.at))
+        stamp = (datetime.fromtimestamp(e.at, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC") if source == "time"
+                 else f"sequence {e.at:g}")
     else:
         order, k, stamp = np.arange(meas.n_poses), int(e.at), f"row {int(e.at) + 1}"
     ids = meas.point_ids or [str(i + 1) for i in range(meas.n_poses)]
@@ -78,7 +79,7 @@ def _flagged_in_runs(first: Calibration, meas: Measurements) -> str:
     p = runs_probability(k, n, N)
     if p >= RUNS_P:
         return ""
-    order = "time" if source == "time" else "row (no timestamps)"
+    order = {"time": "time", "sequence": "measurement (the sequence column)"}.get(source, "row (no timestamps)")
     return (f"{n} pose(s) disagree with the rest by far more than the noise ({_pose_ids(meas, out)}), but they "
             f"are not scattered bad readings: in {order} order they come in {k} run(s) of consecutive measurements "
             f"({_p(p)} for bad readings placed at random). Something happened then (a warm-up, a re-homing, the "

@@ -7,6 +7,7 @@ SMR nest). It never extrapolates: after the session the robot stays in its last 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import datetime, timezone
 
 import numpy as np
 
@@ -15,18 +16,32 @@ from .base import Basis, Context, Effect
 from .joint_effects import _offset_unit
 
 
+CLOCKS = {"time": "timestamp", "sequence": "sequence"}
+"""A step's source -> the measurement column that places each pose in the session (the row order has none: it is
+only a guess at the order, so a step in row order is never a model extension)."""
+
+
 def session_clock(meas) -> tuple[np.ndarray, str]:
-    """Per-pose time (s since the epoch) or, without timestamps, the row order; and its name."""
-    if meas.timestamp is not None:
-        return np.asarray(meas.timestamp, float), "time"
+    """Per-pose time (s since the epoch), else the measurement order of the `sequence` column, else the row order;
+    and its name ("time", "sequence", "row")."""
+    for source, column in CLOCKS.items():
+        if getattr(meas, column) is not None:
+            return np.asarray(getattr(meas, column), float), source
     return np.arange(meas.n_poses, dtype=float), "row"
+
+
+def _clock_column(meas, source: str) -> np.ndarray | None:
+    """The column a step of this source reads on these poses (None: the poses do not say, or the row order)."""
+    column = CLOCKS.get(source)
+    return None if column is None or getattr(meas, column) is None else np.asarray(getattr(meas, column), float)
 
 
 @dataclass(frozen=True)
 class SessionStep(Effect):
-    """A step at `at` in time order: a joint offset (joints = (j,)) or a 6-DoF shift of the whole robot
-    against the tracker (joints = ()). Poses at or after `at` carry the step; poses without a time (new
-    programs) are taken to be after it, the robot's current state."""
+    """A step at `at` in time order (`source`: "time", the timestamps; "sequence", the measurement order; "row",
+    the row order, only to say what a residual follows): a joint offset (joints = (j,)) or a 6-DoF shift of the
+    whole robot against the tracker (joints = ()). Poses at or after `at` carry the step; poses without a time or a
+    sequence number (new programs) are taken to be after it, the robot's current state."""
 
     kind = "unexplained"
     at: float = 0.0
@@ -38,24 +53,32 @@ class SessionStep(Effect):
         so a pose inside it is wrong with the share of the gap between it and `at`'s side; 0 elsewhere and for
         poses without a time."""
         meas = ctx.meas
-        if len(self.gap) != 2 or self.source != "time" or meas.timestamp is None:
+        t = _clock_column(meas, self.source)
+        if len(self.gap) != 2 or t is None:
             return np.zeros(meas.n_poses)
         lo, hi = self.gap
-        t = np.asarray(meas.timestamp, float)
         share = np.clip((t - lo) / max(hi - lo, 1e-300), 0.0, 1.0)
         return np.where(t >= self.at, 1.0 - share, share) * ((t > lo) & (t < hi))
 
     def after(self, meas) -> np.ndarray:
-        if self.source == "time" and meas.timestamp is not None:
-            return (np.asarray(meas.timestamp) >= self.at).astype(float)
-        if self.source == "row" and meas.timestamp is None and meas.n_poses > self.at:
+        t = _clock_column(meas, self.source)
+        if t is not None:
+            return (t >= self.at).astype(float)
+        if self.source == "row" and session_clock(meas)[1] == "row" and meas.n_poses > self.at:
             return (np.arange(meas.n_poses) >= self.at).astype(float)
         return np.ones(meas.n_poses)
 
+    def place(self) -> str:
+        """Where the step sits, in its parameters' names (two steps of one joint are two parameters): the UTC time
+        to the second, else the sequence number or row."""
+        if self.source == "time":
+            return datetime.fromtimestamp(self.at, timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+        return f"{self.at:g}"
+
     def parameter_names(self, model):
         if self.joints:
-            return [f"{model.joint_names[self.joints[0]]}.step"]
-        return [f"step.{a}" for a in ("x", "y", "z", "rx", "ry", "rz")]
+            return [f"{model.joint_names[self.joints[0]]}.step[{self.place()}]"]
+        return [f"step[{self.place()}].{a}" for a in ("x", "y", "z", "rx", "ry", "rz")]
 
     def parameter_units(self, model):
         if self.joints:
@@ -97,7 +120,7 @@ class TargetStep(SessionStep):
     cannot carry it: the offset turns with the flange (issue 34, a target re-mounted at pose N)."""
 
     def parameter_names(self, model):
-        return [f"target_step.{a}" for a in ("x", "y", "z")]
+        return [f"target_step[{self.place()}].{a}" for a in ("x", "y", "z")]
 
     def parameter_units(self, model):
         return ["mm"] * 3
@@ -154,9 +177,9 @@ def _steps_at(order: np.ndarray, source: str, idx, joints: list[int]) -> list[Se
 
 
 def at_gap(order: np.ndarray, i: int, source: str) -> dict:
-    """Where a step between the poses i - 1 and i of the sorted clock goes: halfway in time, and the gap it may lie
-    anywhere in (the poses' times); by row number without timestamps."""
-    if source != "time":
+    """Where a step between the poses i - 1 and i of the sorted clock goes: halfway in time (or in the sequence),
+    and the gap it may lie anywhere in (the poses' times); by row number without either."""
+    if source not in CLOCKS:
         return {"at": float(i)}
     return {"at": float(0.5 * (order[i - 1] + order[i])), "gap": (float(order[i - 1]), float(order[i]))}
 
@@ -189,7 +212,8 @@ class Probe(Effect):
                 "tool height in the measurement frame (mm)"
         clock, source = session_clock(ctx.meas)
         t = (clock - clock.mean()) / max(float(np.ptp(clock)), 1e-9)
-        return np.column_stack([t, t**2]), clock, "time (s)" if source == "time" else "row order"
+        return np.column_stack([t, t**2]), clock, {"time": "time (s)", "sequence": "measurement order"}.get(source,
+                                                                                                          "row order")
 
     def _n_features(self, model) -> int:
         if self.family in ("joint", "drive"):

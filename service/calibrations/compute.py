@@ -39,7 +39,7 @@ def load(db: Database, calibration_id: str):
 
 def predict_json(model, stored: Stored, body: PredictIn) -> bytes:
     positions, unit, notes = service.predict(model, stored, body.joints, body.payload, body.temperature,
-                                             body.timestamp, body.target, body.setup, body.tau)
+                                             body.timestamp, body.target, body.setup, body.tau, body.sequence)
     return PredictOut(positions=positions, unit=unit, notes=notes).model_dump_json().encode()
 
 

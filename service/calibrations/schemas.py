@@ -84,6 +84,10 @@ class PredictIn(BaseModel):
                                                       "(absent: the calibration's mean temperature)")
     timestamp: str | list[str] | None = Field(None, description="ISO 8601, one or one per pose; used only by a "
                                               "calibration that identified a drift over time", max_length=MAX_POSES)
+    sequence: Finite | PerPose | None = Field(None, description="each pose's place in the measurement order of the "
+                                              "calibration's data (its `sequence` column), one or one per pose; "
+                                              "used only by a calibration with a step in that order (absent: "
+                                              "after every step, the robot's current state)")
     tau: dict[Label, TauValues] | None = Field(None, max_length=MAX_ROW, description=TAU_DESCRIPTION,
                                                examples=[{"tau_J2": [412.5], "tau_J3": -88.0}])
 

@@ -11,7 +11,7 @@ from calib_core.compensate import compensate as solve_compensation
 from calib_core.compensate import nominal_to_calibrated
 from calib_core.effects.base import unloaded
 from calib_core.calibrated import CalibratedRobot, StaleState
-from calib_core.io import MAX_TAU, Measurements
+from calib_core.io import MAX_SEQUENCE, MAX_TAU, Measurements
 from calib_core.model import (ANGLE_TO_RAD, JOINT_MARGIN_FRACTION, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM,
                                MAX_REVOLUTE_DEG, TEMPERATURE_RANGE_C, TIMESTAMP_RANGE_S, TIMESTAMP_RANGE_UTC,
                                RobotModel)
@@ -289,8 +289,8 @@ def _tau(model, tau: dict | None, n_rows: int, errors: list) -> tuple[np.ndarray
     return out, max(0, len(found) - MAX_ERRORS)
 
 
-def predict(model: RobotModel, c, joints: list[list[float]], payload, temperature=None,
-            timestamp=None, target=None, setup=None, tau=None) -> tuple[list[list[float]], str, list[str]]:
+def predict(model: RobotModel, c, joints: list[list[float]], payload, temperature=None, timestamp=None, target=None,
+            setup=None, tau=None, sequence=None) -> tuple[list[list[float]], str, list[str]]:
     """Positions (model length unit) of the calibrated robot at actuated joints (model units), and notes on what
     they could not take into account (a load-driven cause without a load). tau: `tau_<joint>` -> N*m or N.
     `c`: the calibration, or anything with its `robot_state` (it crosses to a compute process: compute.py)."""
@@ -302,7 +302,10 @@ def predict(model: RobotModel, c, joints: list[list[float]], payload, temperatur
         errors.append({"field": "body.payload", "value": len(payload), "message": "one payload per pose, or one number"})
     temp = _per_pose("temperature", temperature, len(joints), errors)
     stamps = _per_pose("timestamp", _epoch(timestamp, errors), len(joints), errors)
+    order = _per_pose("sequence", sequence, len(joints), errors)
     more = _joint_range_problems(model, joints, "joints", errors)
+    more += _range_problems("sequence", sequence, -MAX_SEQUENCE, MAX_SEQUENCE, "(a place in the measurement order)",
+                            errors)
     more += _range_problems("payload", payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
     more += _range_problems("temperature", temperature, *TEMPERATURE_RANGE_C, "deg C", errors)
     torques, hidden = _tau(model, tau, len(joints), errors)
@@ -311,7 +314,8 @@ def predict(model: RobotModel, c, joints: list[list[float]], payload, temperatur
     robot = restored(model, c)
     load = None if payload is None else np.broadcast_to(np.asarray(payload, float), (len(q),)).copy()
     columns = Measurements(joints=q, points=np.zeros((len(q), 3)), payload=load, temperature=temp,
-                           timestamp=stamps, target=tix, setup=six, setup_names=robot.setup_names, tau=torques)
+                           timestamp=stamps, target=tix, setup=six, setup_names=robot.setup_names, tau=torques,
+                           sequence=order)
     p_mm = robot.predict(q, columns)
     notes = unloaded(model, robot.effects, columns)
     return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit, notes

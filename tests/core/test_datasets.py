@@ -95,8 +95,10 @@ def test_motoman_shape_units_limits():
     assert ds.model["units"] == {"length": "mm", "angle": "deg"}
     assert [j["name"] for j in ds.model["joints"]] == list(MOTOMAN_JOINTS)
     header, cols, points = parse_csv(ds.csv_text)
-    assert header == ["point", *MOTOMAN_JOINTS, "x", "y", "z", "sigma"]
+    assert header == ["point", *MOTOMAN_JOINTS, "x", "y", "z", "sequence", "sigma"]
     assert len(points) == 586 and len(set(points)) == 586
+    # the measurement order: pose_id, increasing with the rows
+    assert np.array_equal(cols["sequence"], [float(p) for p in points]) and np.all(np.diff(cols["sequence"]) > 0)
     q, xyz, _ = joints_and_xyz(ds, MOTOMAN_JOINTS)
     check_limits(ds, q)
     assert np.abs(q[:, 0]).max() < 0.1  # torso E is ~0

@@ -274,6 +274,39 @@ def test_a_step_of_the_last_joint_is_told_from_a_remounted_target(seed):
         (follows, f"{where} by {size:.1f}x noise, seed {seed}")
 
 
+@pytest.mark.slow
+def test_a_step_in_the_sequence_column_is_a_model_extension(seed):
+    """No timestamps but a `sequence` column (the order the poses were measured in, the Motoman's pose_id), the rows
+    shuffled: a joint re-homed mid-session is a finding, placed by the sequence (not the rows), and the model
+    predicts fresh poses in the robot's current state (after the step) far better than the geometry alone. Without
+    the column a step is only what the residual follows (row order is a guess)."""
+    rng = np.random.default_rng(seed)
+    model = parse_model(arm6()) if seed % 2 else SPRAY
+    world = World(model, rng=rng)
+    q = world.sample_joints(150, rng)
+    j = int(rng.integers(1, model.n_joints))
+    size = float(np.exp(rng.uniform(np.log(5.0), np.log(20.0))))
+    step = ReHoming(j, 1e-3, float(rng.uniform(0.4, 0.8)))
+    step, _ = size_cause(world, step, size * world.noise_rms_mm(q), q, world.columns(q, None, False),
+                         world.absorbable_basis(q))
+    world.hide(step)
+    meas = world.campaign(q=q).meas
+    order = rng.permutation(meas.n_poses)
+    shuffled = dataclasses.replace(meas.subset(order), timestamp=None, sequence=7.0 + 3.0 * order)
+    d = diagnose(model, shuffled)
+    where = f"{model.joint_names[j]} re-homed at {step.at_fraction:.2f} by {size:.1f}x noise, seed {seed}: {_said(d)}"
+    steps = [f for f in d.findings if str(f.get("form", "")).startswith("step[")]
+    assert [f["joints"] for f in steps] == [[model.joint_names[j]]], where
+    first_after = int(np.searchsorted(meas.timestamp, meas.timestamp[0] + step.at_fraction * np.ptp(meas.timestamp)))
+    assert f"sequence {7.0 + 3.0 * (first_after - 0.5):g}" in steps[0]["evidence"], where
+    fresh = world.sample_joints(100, np.random.default_rng((seed, 5)))
+    now = dataclasses.replace(world.columns(fresh, None, False), timestamp=np.full(100, meas.timestamp[-1]))
+    truth = world.true_points(fresh, now)
+    err = {k: float(np.sqrt(np.mean(np.sum((c.predict(fresh, now) - truth) ** 2, axis=1))))
+           for k, c in (("auto", d.calibration), ("geometric", d.geometric))}
+    assert err["auto"] < 0.5 * err["geometric"], (err, where)
+
+
 def _burst(seed, first: int, size_mm: tuple[float, float]):
     """4-8 consecutive readings off by size_mm in a drawn direction, starting at a drawn row >= first and ending
     >= first rows before the session's end, diagnosed with `auto`: (the diagnosis, the bad point ids, where)."""

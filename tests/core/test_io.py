@@ -35,6 +35,17 @@ def test_round_trip_with_columns_in_any_order(seed):
     assert np.allclose(again.joints, back.joints) and np.allclose(again.payload, back.payload)
 
 
+def test_the_sequence_column_round_trips_and_follows_its_rows(seed):
+    """`sequence` (the order the poses were measured in) is read, written and kept by subset with its rows."""
+    meas = Twin(MODEL, seed).measure(n=20)
+    meas.timestamp = None
+    meas.sequence = np.random.default_rng(seed).permutation(20) * 2.0 + 100.0
+    back = parse_measurements(write_measurements(meas, MODEL), MODEL)
+    assert np.array_equal(back.sequence, meas.sequence)
+    assert np.array_equal(back.subset(np.arange(20)[::-3]).sequence, meas.sequence[::-3])
+    assert parse_measurements(f"{HEADER}\n{ROW}\n", MODEL).sequence is None
+
+
 def _errors(text, model=MODEL, **kw):
     """The errors parse_measurements names for a CSV it must refuse."""
     with pytest.raises(MeasurementError) as exc:
@@ -55,6 +66,8 @@ def _errors(text, model=MODEL, **kw):
     (HEADER + "\n" + ROW.replace("1757.014212", "1600"), 2, "J6", "1600", "outside the joint limits"),
     (HEADER + "\n" + ROW.replace("2026-11-03T08:00:19+00:00", "yesterday"), 2, "timestamp", "yesterday", "ISO 8601"),
     (HEADER + "\n" + ROW + ",extra", 2, None, 13, "expected 12 fields"),
+    (HEADER + ",sequence\n" + ROW + ",first", 2, "sequence", "first", "not a number"),
+    (HEADER + ",sequence\n" + ROW + ",1e13", 2, "sequence", "1e13", "sequence must be at most"),
 ])
 def test_bad_rows_name_row_column_value(text, row, column, value, words):
     errs = _errors(text)

@@ -410,6 +410,8 @@ POSE = [2000.0, 10.0, -20.0, 30.0, -40.0, 2000.0, 15.0]
     ("predict", {"joints": [POSE], "payload": 1e308}, "body.payload", "between 0 and 10000 kg"),
     ("predict", {"joints": [POSE], "temperature": 1e10}, "body.temperature", "deg C"),
     ("predict", {"joints": [POSE], "timestamp": "9999-01-01T00:00:00+00:00"}, "body.timestamp[0]", "2200"),
+    ("predict", {"joints": [POSE, POSE], "sequence": [3, 1e13]}, "body.sequence[1]", "measurement order"),
+    ("predict", {"joints": [POSE, POSE], "sequence": [3]}, "body.sequence", "one value per pose"),
     ("compensate", {"program_joints": [POSE], "payload": -5.0}, "body.payload", "between 0 and 10000 kg"),
     ("compensate", {"targets": [[1e305, 0, 0]], "seed_joints": [POSE]}, "body.targets[0][0]", "100 m"),
     ("compensate", {"targets": [[0, 0, 0]], "seed_joints": [POSE[:6] + [1e9]]}, "body.seed_joints[0][6]", "far outside"),

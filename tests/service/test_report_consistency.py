@@ -13,7 +13,8 @@ import re
 import pytest
 
 from service.report import decorate, plots as report_plots
-from service.report.figures import (COMPLIANCE_UNIT, accuracy, counts, joint_size, mm, pct, shown, sig)
+from service.report.figures import (COMPLIANCE_UNIT, accuracy, counts, joint_size, mm, pct, shown, sig,
+                                    std_str)
 from service.report.html import render
 
 from .test_report import calibrations, run_job, text_of  # noqa: F401  (the module's fixture, its helpers)
@@ -177,6 +178,7 @@ def every_printed_figure_is_one_of_the_answer(a: dict, html: str, text: str) -> 
     text = text[:text.index("Parameters parameter value")]
     values = _numbers(a, [])
     allowed_mm = {mm(v) for v in values} | {f"{v:.3g}" for v in values}
+    allowed_mm |= {std_str(p.get("std")) for p in a["parameters"]}  # a finding's table: "value std unit" (a step's mm)
     allowed_pct = {f"{v:.1f}" for v in values} | {f"{v:.0f}" for v in values}
     quoted = " ".join(_strings(a, []))
     for x in re.findall(rf"({NUM}) mm\b", text):
