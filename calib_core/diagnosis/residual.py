@@ -52,12 +52,11 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
         if c.log_p > (step_limit if is_step else np.log(alpha / n_tests)):
             continue
         if is_step:
-            what = f"time order: a step of {c.effect.stepped(model)} " + _when(c.effect, meas)
-            if c.effect.source == "sequence":
-                what = f"measurement order (sequence): a step of {c.effect.stepped(model)} " + _when(c.effect, meas)
+            head = {"time": "time order", "sequence": "measurement order (sequence)"}.get(c.effect.source,
+                                                                                          "row order (no timestamps)")
+            what = f"{head}: a step of {c.effect.stepped(model)} {_when(c.effect, meas)}"
             if c.effect.source == "row":
-                what = (f"row order (no timestamps): a step of {c.effect.stepped(model)} {_when(c.effect, meas)}; "
-                        "were the rows measured in this order?")
+                what += "; were the rows measured in this order?"
         elif isinstance(c.effect, (LoadCompliance, JointCompliance)):
             what = "the gravity load on the joints"
         else:

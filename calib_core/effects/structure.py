@@ -157,9 +157,8 @@ STEP_WINDOW = 8
 
 def steps_near(meas, joints: list[int], at: float) -> list[SessionStep]:
     """Every kind of step (the whole robot, the target, each joint) at every gap within STEP_WINDOW poses of `at`
-    in time order: the grid of step_candidates puts a step up to half its spacing off, and a pose on the wrong
-    side of it is fitted better by the six parameters of a rigid shift than by one joint's zero (a re-homed last
-    joint was named a shift of the whole robot in 3 of 100 draws)."""
+    in time order: the grid of step_candidates puts a step up to half its spacing off, and the kinds are compared
+    at the exact place (a pose on the wrong side favours the kind with more parameters)."""
     clock, source = session_clock(meas)
     order = np.sort(clock)
     k = int(np.searchsorted(order, at))
@@ -167,6 +166,7 @@ def steps_near(meas, joints: list[int], at: float) -> list[SessionStep]:
 
 
 def _steps_at(order: np.ndarray, source: str, idx, joints: list[int]) -> list[SessionStep]:
+    """The whole robot's, the target's and each joint's step between poses i - 1 and i of the sorted clock, per i."""
     out = []
     for i in idx:
         place = at_gap(order, i, source)
