@@ -217,23 +217,30 @@ def test_a_cable_pulled_by_one_joint_is_traced_to_it(seed):
     assert _truth_error(world, d.calibration.robot, info) < 0.5 * _truth_error(world, d.geometric.robot, info), where
 
 
+def _rehomed(seed: int, joint: int | None, size_x_noise: tuple, at: tuple):
+    """A drawn robot (arm6 on odd seeds, else spray7) with a joint (drawn unless given) re-homed at a drawn share
+    `at` of the session by a drawn size (x the noise RMS of its unabsorbable part), measured at 150 poses:
+    (model, world, joint, size, the cause, the measurements with timestamps)."""
+    rng = np.random.default_rng(seed)
+    model = parse_model(arm6()) if seed % 2 else SPRAY
+    world = World(model, rng=rng)
+    q = world.sample_joints(150, rng)
+    j = int(rng.integers(1, model.n_joints)) if joint is None else joint
+    size = float(np.exp(rng.uniform(*np.log(size_x_noise))))
+    step, _ = size_cause(world, ReHoming(j, 1e-3, float(rng.uniform(*at))), size * world.noise_rms_mm(q), q,
+                         world.columns(q, None, False), world.absorbable_basis(q))
+    world.hide(step)
+    return model, world, j, size, step, world.campaign(q=q).meas
+
+
 @pytest.mark.slow
 def test_a_late_block_off_in_row_order_is_structure_not_outliers(seed):
     """A joint re-homed for the last 8-18 % of a session with no timestamps (the Motoman's case): a robust fit flags
     that block, but bad readings are not consecutive. `auto` keeps them at full weight and the answer says the
     residual follows a step of that joint in row order; under the Huber loss they were down-weighted and left out of
     every held-out test, and the answer could be `[]` (arm6, 16.8x the noise, J4: "follows nothing")."""
-    rng = np.random.default_rng(seed)
-    model = parse_model(arm6()) if seed % 2 else SPRAY
-    world = World(model, rng=rng)
-    q = world.sample_joints(150, rng)
-    j = int(rng.integers(1, model.n_joints))
-    size = float(np.exp(rng.uniform(np.log(10.0), np.log(30.0))))
-    step = ReHoming(j, 1e-3, float(rng.uniform(0.82, 0.92)))
-    step, _ = size_cause(world, step, size * world.noise_rms_mm(q), q, world.columns(q, None, False),
-                         world.absorbable_basis(q))
-    world.hide(step)
-    meas = dataclasses.replace(world.campaign(q=q).meas, timestamp=None)
+    model, world, j, size, step, meas = _rehomed(seed, None, (10.0, 30.0), (0.82, 0.92))
+    meas = dataclasses.replace(meas, timestamp=None)
     d = diagnose(model, meas)
     where = f"{model.joint_names[j]} re-homed at {step.at_fraction:.2f} by {size:.1f}x noise, seed {seed}"
     assert d.loss is None and any("run(s) of consecutive measurements" in n for n in d.notes), (d.notes, where)
@@ -251,22 +258,20 @@ def test_a_step_of_the_last_joint_is_told_from_a_remounted_target(seed):
     fits exactly with two parameters more: the joint's zero is named unless they pay (before, 3 of 100 re-homings
     were named a shift of the target or the whole robot: the joint's tangent misses the chord at 20x the noise);
     a target re-mounted in a drawn direction is the target's step, not the joint's."""
-    rng = np.random.default_rng(seed)
     model = parse_model(arm6()) if seed % 2 else SPRAY
-    world = World(model, rng=rng)
-    q = world.sample_joints(150, rng)
-    size = float(np.exp(rng.uniform(np.log(10.0), np.log(30.0))))
     last = model.joint_names[-1]
-    if rng.random() < 0.5:
-        step = ReHoming(model.n_joints - 1, 1e-3, float(rng.uniform(0.5, 0.92)))
-        step, _ = size_cause(world, step, size * world.noise_rms_mm(q), q, world.columns(q, None, False),
-                             world.absorbable_basis(q))
-        world.hide(step)
+    if np.random.default_rng((seed, 7)).random() < 0.5:
+        model, world, _, size, step, meas = _rehomed(seed, model.n_joints - 1, (10.0, 30.0), (0.5, 0.92))
         expected, stepped, where = [last], f"{last}'s zero", f"{last} re-homed at {step.at_fraction:.2f}"
     else:
+        rng = np.random.default_rng(seed)
+        world = World(model, rng=rng)
+        q = world.sample_joints(150, rng)
+        size = float(np.exp(rng.uniform(np.log(10.0), np.log(30.0))))
         info = hide(world, "target_remount", size, rng, q=q)
+        meas = world.campaign(q=q).meas
         expected, stepped, where = [], "the target", f"target re-mounted at pose {info['notes']['at_pose']}"
-    meas = dataclasses.replace(world.campaign(q=q).meas, timestamp=None)
+    meas = dataclasses.replace(meas, timestamp=None)
     d = diagnose(model, meas)
     follows = [x for f in d.findings if f["kind"] == "unexplained" for x in f.get("follows", [])]
     steps = [x for x in follows if x["what"].startswith("row order")]
@@ -280,18 +285,8 @@ def test_a_step_in_the_sequence_column_is_a_model_extension(seed):
     shuffled: a joint re-homed mid-session is a finding, placed by the sequence (not the rows), and the model
     predicts fresh poses in the robot's current state (after the step) far better than the geometry alone. Without
     the column a step is only what the residual follows (row order is a guess)."""
-    rng = np.random.default_rng(seed)
-    model = parse_model(arm6()) if seed % 2 else SPRAY
-    world = World(model, rng=rng)
-    q = world.sample_joints(150, rng)
-    j = int(rng.integers(1, model.n_joints))
-    size = float(np.exp(rng.uniform(np.log(5.0), np.log(20.0))))
-    step = ReHoming(j, 1e-3, float(rng.uniform(0.4, 0.8)))
-    step, _ = size_cause(world, step, size * world.noise_rms_mm(q), q, world.columns(q, None, False),
-                         world.absorbable_basis(q))
-    world.hide(step)
-    meas = world.campaign(q=q).meas
-    order = rng.permutation(meas.n_poses)
+    model, world, j, size, step, meas = _rehomed(seed, None, (5.0, 20.0), (0.4, 0.8))
+    order = np.random.default_rng((seed, 6)).permutation(meas.n_poses)
     shuffled = dataclasses.replace(meas.subset(order), timestamp=None, sequence=7.0 + 3.0 * order)
     d = diagnose(model, shuffled)
     where = f"{model.joint_names[j]} re-homed at {step.at_fraction:.2f} by {size:.1f}x noise, seed {seed}: {_said(d)}"
