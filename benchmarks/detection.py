@@ -315,14 +315,16 @@ def judge34(expected: str, hidden: list[str], findings: list[dict]) -> dict:
 
 
 def step_at_n(rec: dict) -> str | None:
-    """'joint' or 'robot' where a finding of a target_remount draw is a step in time order between the poses either
-    side of the re-mount (point ids P<N> and P<N+1>, 1-based), else None."""
+    """'target', 'joint' or 'robot' where a finding of a target_remount draw is a step in time order between the
+    poses either side of the re-mount (point ids P<N> and P<N+1>, 1-based), else None."""
     n = (rec.get("notes") or {}).get("at_pose")
     if n is None:
         return None
     key = f"between P{n:04d} and P{n + 1:04d}"
     for f in rec.get("findings", []):
         if key in (f.get("evidence") or "") or key in json.dumps(f.get("follows") or ""):
+            if str(f.get("form", "")).startswith("step[target"):
+                return "target"
             return "joint" if f["joints"] else "robot"
     return None
 
@@ -447,14 +449,16 @@ def tabulate34(records: list[dict]) -> None:
     steps = [r for r in done if r["kind"] == "target_remount" and r["size"] >= 1.0]
     if steps:
         print("\nTarget re-mounted at pose N: a step in time order found between poses N-1 and N (the evidence's "
-              "'between P.. and P..'), as a joint's zero or a shift of the whole robot:\n")
-        print("| robot | n from 1x | step at N found | as a joint's zero | as the whole robot | thermal drift named |")
-        print("|---|---|---|---|---|---|")
+              "'between P.. and P..'), as the target's step, a joint's zero or a shift of the whole robot:\n")
+        print("| robot | n from 1x | step at N found | as the target's | as a joint's zero | as the whole robot | "
+              "thermal drift named |")
+        print("|---|---|---|---|---|---|---|")
         for rb in robots:
             rs = [r for r in steps if r["robot"] == rb]
             if rs:
                 at = [step_at_n(r) for r in rs]
-                print(f"| {rb} | {len(rs)} | {sum(bool(a) for a in at)} | {sum(a == 'joint' for a in at)} | "
+                print(f"| {rb} | {len(rs)} | {sum(bool(a) for a in at)} | {sum(a == 'target' for a in at)} | "
+                      f"{sum(a == 'joint' for a in at)} | "
                       f"{sum(a == 'robot' for a in at)} | "
                       f"{sum(any(f['kind'] == 'thermal_drift' and _is_named(f) for f in r['findings']) for r in rs)} |")
     miss = [r for r in done if r["size"] > 0 and (not r["right"] or r["wrong_name"])]

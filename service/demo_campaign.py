@@ -64,7 +64,7 @@ def cause_name(f: dict) -> str:
     if f["kind"] != "unexplained":
         return finding_title(f)
     if "correction" not in f:  # a step in time order (diagnosis.findings._finding of a SessionStep)
-        return "a step in time order" + (f" of {', '.join(f['joints'])}" if f.get("joints") else "")
+        return finding_title(f)
     said = UNEXPLAINED[f["correction"]]
     if f.get("weighted_as_pose_noise"):
         said = ("not corrected by a model, but what the targets of a pose share is weighted as noise of each pose"

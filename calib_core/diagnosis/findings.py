@@ -56,7 +56,8 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     if e.harmonic is not None:
         out["harmonic"] = e.harmonic
     if isinstance(e, SessionStep):
-        out["follows"] = [{"what": "time order", "detail": when, "joints": _names(e, model), "p_value": c.p_value}]
+        order = {"time": "time order", "sequence": "the measurement order (sequence)"}.get(e.source, "row order")
+        out["follows"] = [{"what": order, "detail": when, "joints": _names(e, model), "p_value": c.p_value}]
     if alike:
         out["indistinguishable_from"] = alike
         out["evidence"] += ("; on this pose set it cannot be told apart from " +

@@ -146,9 +146,23 @@ def plot_list(answer: dict) -> list[dict]:
     return out
 
 
+def step_title(f: dict) -> str | None:
+    """A step in the session (an `unexplained` finding of form `step[<what> @ <place>]`) in words: what stepped
+    (`a step in the session: T1's zero`); None for any other finding."""
+    form = str(f.get("form", ""))
+    if f.get("kind") != "unexplained" or not form.startswith("step[") or " @ " not in form:
+        return None
+    what = form[len("step["):form.index(" @ ")]
+    said = {"robot": "the robot against the tracker", "target": "the target on its flange"}.get(what, f"{what}'s zero")
+    return f"a step in the session: {said}"
+
+
 def finding_title(f: dict) -> str:
     """`joint compliance on R6`, named for its significant joints (`named_joints`); a correction (kind "correction") by the form it follows, which the prose around it
-    calls a correction."""
+    calls a correction; a step in the session by what stepped."""
+    step = step_title(f)
+    if step:
+        return step
     kind = str(f.get("follows") if f.get("kind") == "correction" and f.get("follows") else f.get("kind", ""))
     kind = kind.replace("_", " ")
     named, others = named_joints(f)

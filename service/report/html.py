@@ -15,7 +15,7 @@ from typing import Callable
 
 from calib_core.diagnosis import follows_what, is_named, named_joints
 
-from .figures import (accuracy, counted_word, finding_title, joint_size, mm, model_label,
+from .figures import (accuracy, counted_word, finding_title, joint_size, mm, model_label, step_title,
                       num, observability, pct, plot_list, show_unit, shown, sig, std_str)
 
 CSS = """
@@ -321,7 +321,7 @@ def render(answer: dict, png: Callable[[str], bytes] | None = None) -> str:
             for f in findings:
                 kind = str(f.get("kind", ""))
                 j = _joints(f)
-                what = PLAIN.get(kind, finding_title(f))
+                what = step_title(f) or PLAIN.get(kind, finding_title(f))
                 named, others = named_joints(f)
                 one = len(named) <= 1
                 title = _sentence(what.format(j=j, s="s" if one else "", its="its" if one else "their"))

@@ -361,7 +361,7 @@ def test_the_story_names_only_the_correction_the_diagnosis_made(kind, seed):
         name, evidence = demo.cause_name(f), f["evidence"]
         assert ("smooth joint-space" in name) == ("smooth joint-space correction field" in evidence), (name, seed)
         assert ("offsets of the other joints" in name) == ("offsets of the other joints" in evidence), (name, seed)
-        assert ("step in time order" in name) == (f["kind"] == "unexplained" and "correction" not in f), (name, seed)
+        assert ("a step in the session" in name) == (f["kind"] == "unexplained" and "correction" not in f), (name, seed)
         assert ("weighted as noise" in name) == ("weights it as noise of each pose" in evidence), (name, seed)
 
 
