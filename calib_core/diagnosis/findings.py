@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..effects import Effect, SessionStep
+from ..effects.structure import ORDER_NAMES
 from ..identify import Calibration
 from ..io import Measurements
 from ..model import RobotModel
@@ -56,8 +57,7 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
     if e.harmonic is not None:
         out["harmonic"] = e.harmonic
     if isinstance(e, SessionStep):
-        order = {"time": "time order", "sequence": "the measurement order (sequence)"}.get(e.source, "row order")
-        out["follows"] = [{"what": order, "detail": when, "joints": _names(e, model), "p_value": c.p_value}]
+        out["follows"] = [{"what": ORDER_NAMES[e.source], "detail": when, "joints": _names(e, model), "p_value": c.p_value}]
     if alike:
         out["indistinguishable_from"] = alike
         out["evidence"] += ("; on this pose set it cannot be told apart from " +
@@ -84,7 +84,7 @@ def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> 
         names = {p["name"] for p in f.get("parameters", [])}
         sizes = []
         for e, v in zip(cal.effects, cal.effect_values):
-            if names & set(e.parameter_names(model)) and not isinstance(e, SessionStep):
+            if e.bounded and names & set(e.parameter_names(model)):
                 for j, t in e.turns(ctx, v):
                     big = float(np.abs(t).max())
                     if big > (PLAUSIBLE_TRAVEL_MM if model.prismatic[j] else PLAUSIBLE_TURN_RAD):

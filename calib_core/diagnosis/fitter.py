@@ -26,7 +26,9 @@ class _Fitter:
     last: list = field(default_factory=list, compare=False, repr=False)
 
     def __call__(self, effects=(), x_ref=None, folds: int | None = None, pose_noise=None,
-                 model_error_mm: float | None = None) -> Calibration:
+                 model_error_mm: float | None = None, aside: bool = False) -> Calibration:
+        """The fit; `aside`: a comparison the search does not go on from (the next fit starts where the last one
+        that was not aside ended)."""
         refold = None
         if any(_identified_play(e) for e in effects):
             refold = lambda cal: _refold_plays(self.meas, cal)  # noqa: E731
@@ -34,5 +36,6 @@ class _Fitter:
                        prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold,
                        pose_noise=pose_noise, start=self.last[0] if self.last else None,
                        model_error_mm=model_error_mm)
-        self.last[:] = [cal]
+        if not aside:
+            self.last[:] = [cal]
         return cal

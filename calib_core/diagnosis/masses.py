@@ -17,7 +17,7 @@ from ..kinematics import _cross
 from ..model import RobotModel
 from .evidence import REFINE_ALPHA, _p, holdout_gain
 from .fitter import _Fitter
-from .screening import _robust_sigma, _weighted_system
+from .screening import _robust_sigma, _weighted_system, weighted_misfit
 
 
 def _load_pool(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> dict[int, LoadCompliance]:
@@ -205,7 +205,7 @@ def _mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, tilt_fir
         effects = [dataclasses.replace(e, masses=masses, gravity=tuple(float(v) for v in g)) if i in idx else e
                    for i, e in enumerate(chosen)]
         refit = fit(effects, t.x, folds=0, model_error_mm=weighting)
-        misfit = float(np.sum(refit.solution.weights[:, None] * (refit.solution.residual / refit.sigma_mm[:, None])**2))
+        misfit = weighted_misfit(refit)
         small = best is not None and best[0] - misfit < MASS_DROP
         if best is None or misfit < best[0]:
             best = (misfit, effects, refit.x)

@@ -9,7 +9,7 @@ from .. import shared_motion
 from .. import kinematics as K
 from ..effects import Context, Effect, JointCompliance, LoadCompliance, Probe, SessionStep, has_loads
 from ..effects.residual import LENGTH_SCALES, ResidualField, field_prior_std
-from ..effects.structure import probes, step_candidates, steps_near
+from ..effects.structure import ORDER_NAMES, probes, step_candidates, steps_near
 from ..identify import Calibration, pose_folds
 from ..io import Measurements
 from .evidence import HOLDOUT_ALPHA, _better, _p, holdout_gain, model_error_mm
@@ -17,7 +17,7 @@ from .findings import _names
 from .fitter import _Fitter
 from .masses import _distributed
 from .screening import (Candidate, _robust_sigma, _weighted_columns, _weighted_system, fold_predictions, log_p_beyond,
-                        screen)
+                        screen, weighted_misfit)
 from .time_structure import _when
 
 
@@ -52,9 +52,7 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
         if c.log_p > (step_limit if is_step else np.log(alpha / n_tests)):
             continue
         if is_step:
-            head = {"time": "time order", "sequence": "measurement order (sequence)"}.get(c.effect.source,
-                                                                                          "row order (no timestamps)")
-            what = f"{head}: a step of {c.effect.stepped(model)} {_when(c.effect, meas)}"
+            what = f"{ORDER_NAMES[c.effect.source]}: a step of {c.effect.stepped(model)} {_when(c.effect, meas)}"
             if c.effect.source == "row":
                 what += "; were the rows measured in this order?"
         elif isinstance(c.effect, (LoadCompliance, JointCompliance)):
@@ -86,18 +84,11 @@ def _simplest_step(near: list[Candidate], limit: float, fit: _Fitter, chosen: li
     small = min(simpler, key=lambda c: c.bic)
     if log_p_beyond(best, small) > limit:
         return small
-    saved = list(fit.last)
-    rss = [_weighted_rss(fit(tuple(chosen) + (c.effect,), x_ref, folds=1, model_error_mm=cal.model_error_mm), sigma)
-           for c in (small, best)]  # weighted as cal is: one solve each
-    fit.last[:] = saved
+    rss = [weighted_misfit(fit(tuple(chosen) + (c.effect,), x_ref, folds=1, model_error_mm=cal.model_error_mm,
+                               aside=True), sigma) for c in (small, best)]  # weighted as cal is: one solve each
     extra = best.dof - small.dof
     F = (max(rss[0] - rss[1], 0.0) / extra) / max(rss[1] / best.residual_dof, 1e-300)
     return small if stats.f.logsf(F, extra, best.residual_dof) > limit else best
-
-
-def _weighted_rss(cal: Calibration, sigma: np.ndarray) -> float:
-    """Sum of the squared residual in units of each pose's sigma, with the fit's robust weights."""
-    return float(np.sum(cal.solution.weights[:, None] * (cal.solution.residual / sigma[:, None]) ** 2))
 
 
 def _shared_motion(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray

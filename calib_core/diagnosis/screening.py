@@ -80,6 +80,13 @@ def _weighted_system_of(cal: Calibration, meas: Measurements, sigma: np.ndarray,
     return r.ravel(), Q, chain
 
 
+def weighted_misfit(cal: Calibration, sigma: np.ndarray | None = None) -> float:
+    """Sum of cal's squared residual in units of each pose's sigma (default the fit's own), with its robust weights
+    (chi-square units)."""
+    sigma = cal.sigma_mm if sigma is None else sigma
+    return float(np.sum(cal.solution.weights[:, None] * (cal.solution.residual / sigma[:, None]) ** 2))
+
+
 GRAM_RCOND = 1e-10
 """A fold's normal matrix (Jacobi-scaled) is solved by Cholesky when its reciprocal condition number is above this
 (columns well apart: the normal equations lose at most 1e-6 of the solution), else by least squares on the rows."""

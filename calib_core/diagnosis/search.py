@@ -114,7 +114,7 @@ class _Search:
         taken = {_cause(e) for e in self.chosen}
         pool = _on_carried_masses([e for e in self.pool if _cause(e) not in taken], self.chosen)
         ranked = screen(self.current, meas, sigma, pool, x_ref)
-        field = []  # the smooth field's share, computed once a single-joint candidate needs it
+        field = None  # the smooth field's share, computed once a single-joint candidate needs it
         thresholds = _thresholds(pool, alpha)
         # a play whose switch follows the identified load, on the joints where a load-driven cause shows
         active = {c.effect.joints[0] for c in ranked if len(c.effect.joints) == 1
@@ -143,11 +143,11 @@ class _Search:
                 return False
             who = _who(c.effect, model)
             broad = isinstance(c.effect, SessionStep) or len(c.effect.joints) > 1  # spread over the arm already
-            if not broad and not field:
-                field.append(field_share(self.current, meas, sigma, x_ref))
-            if not broad and c.beyond_chance < NAMED_SHARE * field[0]:
+            if not broad and field is None:
+                field = field_share(self.current, meas, sigma, x_ref)
+            if not broad and c.beyond_chance < NAMED_SHARE * field:
                 self.rejected.append({**who, "why": f"explains {100 * c.beyond_chance:.0f} % of the residual beyond "
-                                                    f"chance where a smooth field explains {100 * field[0]:.0f} %: "
+                                                    f"chance where a smooth field explains {100 * field:.0f} %: "
                                                     f"part of a broader structure"})
                 continue
             excess = holdout_ms(self.current) - self.floor**2

@@ -101,6 +101,7 @@ class Effect:
     harmonic: int | None = field(default=None)
     kind = "effect"
     needs = "nothing"
+    bounded = True  # a real play, spring or bearing moves a joint by a fraction of a degree (findings._judge_sizes)
 
     def label(self, model: RobotModel) -> str:
         names = ",".join(model.joint_names[j] for j in self.joints) or "robot"

@@ -17,6 +17,8 @@ from .joint_effects import _offset_unit
 
 
 CLOCKS = {"time": "timestamp", "sequence": "sequence"}
+ORDER_NAMES = {"time": "time order", "sequence": "measurement order (sequence)", "row": "row order (no timestamps)"}
+"""A clock's order as the answer names it."""
 """A step's source -> the measurement column that places each pose in the session (the row order has none: it is
 only a guess at the order, so a step in row order is never a model extension)."""
 
@@ -44,6 +46,7 @@ class SessionStep(Effect):
     sequence number (new programs) are taken to be after it, the robot's current state."""
 
     kind = "unexplained"
+    bounded = False  # a joint re-homed or a tracker moved can be off by any amount
     at: float = 0.0
     source: str = "time"
     gap: tuple = ()  # (the times of the measured poses either side of `at`): where the step may be
