@@ -53,15 +53,17 @@ model's statics is found (the default is 0.02); a play on the identified load ha
 
 
 def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dict[int, list[Backlash]],
-                 ctx: Context) -> list[Effect]:
+                 ctx: Context, rivals: tuple = ()) -> list[Effect]:
     """Richer forms of an accepted cause, kept only if held-out poses prefer them: a stiffening spring, the
     load identified from the data instead of the mass data, a play whose switch follows the identified load,
-    a soft play (the joint moves through its play elastically near zero load), a bending link on a tilted base.
-    ctx: the poses at the reference."""
+    a soft play (the joint moves through its play elastically near zero load), a bending link on a tilted base,
+    also where the link is a look-alike among `rivals` (a spring the same poses cannot tell from it was kept as the
+    simpler form: spray7's J3 link under a tilt, named J3's spring at 2x). ctx: the poses at the reference."""
+    out: list[Effect] = [TiltedLinkDeflection(r.joints) for r in rivals
+                         if type(r) is LinkDeflection and type(e) is not LinkDeflection]
     if len(e.joints) != 1:
-        return []
+        return out
     j = e.joints[0]
-    out: list[Effect] = []
     spring_or_play = isinstance(e, (JointCompliance, Backlash)) and not getattr(e, "stiffening", 0)
     if spring_or_play and has_loads(ctx.model, ctx.meas):
         # a soft play and a stiffening spring both deflect less and less as the load grows: try both
@@ -92,7 +94,7 @@ def _merge_alike(alike: list[dict], more: list[dict]) -> list[dict]:
     return alike + [a for a in more if (a["kind"], tuple(a["joints"])) not in seen]
 
 
-def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
+def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref, rivals=()):
     """Swap the accepted cause for a richer form of it when held-out poses say so: among the forms that are
     significantly better than it (paired test), the best on held-out poses; the other forms within 2 % of it,
     or not significantly worse, are look-alikes (a stiffening spring and a soft play both bend less and less
@@ -100,7 +102,7 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref):
     better = []
     ctx = Context(model, K.Chain(model, x_ref, fit.meas.joints, None, fit.meas.labels), fit.meas)
     tried = []
-    for alt in _refinements(c.effect, load_pool, play_pool, ctx):
+    for alt in _refinements(c.effect, load_pool, play_pool, ctx, rivals):
         try:  # a form of a cause already found replaces it (a play refined into the spring found before)
             t = fit([e for e in chosen if _cause(e) != _cause(alt)] + [alt], x_ref)
         except ValueError:

@@ -21,6 +21,7 @@ from ..kinematics import _cross
 from ..statics import gravity_moments, gravity_world
 from .base import Basis, Context, Effect, joint_basis
 from .cartesian_effects import LinkDeflection
+from .joint_effects import TiltedCompliance
 
 MAX_LOAD_TERMS = 6
 """At most this many regressor combinations per joint: a joint's gravity torque over a workspace is a few
@@ -366,9 +367,9 @@ TILT_STEP_RAD = 1e-6
 @dataclass(frozen=True)
 class MassStep(Effect):
     """One Gauss-Newton step of the mass data under fixed compliances (never a reported cause): the displacement
-    of `causes` (joint and lateral compliances, link bending; fitted values `values`) per unit change of each
-    body's mass and first moment, and of the two tilts of gravity (its direction in the base frame,
-    `gravity`). Deflection = compliance x load(mass, gravity) is bilinear; fitting this beside the causes
+    of `causes` (joint and lateral compliances, a tilted base's springs, link bending; fitted values `values`) per
+    unit change of each body's mass and first moment, and of the two tilts of gravity (its direction in the base
+    frame, `gravity`). Deflection = compliance x load(mass, gravity) is bilinear; fitting this beside the causes
     themselves is the step."""
 
     kind = "mass_data"
@@ -398,6 +399,13 @@ class MassStep(Effect):
             v = np.asarray(values, float)
             if isinstance(effect, LinkDeflection):
                 bp += self._bending_columns(ctx, effect, v, g)
+                continue
+            if isinstance(effect, TiltedCompliance):  # c t_a L_a(phi): linear in phi; its tilt is its own
+                for t, j in enumerate(effect.joints):
+                    src, dst = self._columns(model, j)
+                    for a, ga in enumerate(effect.across(model)):
+                        bq[:, :, dst] += (v[2 * t + a] * ctx.moves[None, :, j, None]
+                                          * drive_regressor(ch, j, ga)[:, None, src])
                 continue
             for t, j in enumerate(effect.joints):
                 src, dst = self._columns(model, j)

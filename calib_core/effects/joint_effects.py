@@ -142,6 +142,8 @@ class TiltedCompliance(Effect):
 
     kind = "joint_compliance"
     needs = "mass"
+    masses: tuple = ()  # (n, 4) mass data identified from the data (kg, kg*mm), else the model's (gravity.py)
+    gravity: tuple = ()  # (3,) m/s^2 in the base frame identified with the masses, else the model's
 
     def parameter_names(self, model):
         return [f"{model.joint_names[j]}.compliance_times_tilt_{a}" for j in self.joints for a in "uv"]
@@ -149,8 +151,13 @@ class TiltedCompliance(Effect):
     def parameter_units(self, model):
         return [f"{_offset_unit(model, j)}/{_load_unit(model, j)}" for j in self.joints for _ in "uv"]
 
+    def across(self, model) -> np.ndarray:
+        """(2, 3) m/s^2: gravity_across the gravity this spring's tilt is measured from."""
+        return gravity_across(np.asarray(self.gravity, float) if self.gravity else model.gravity)
+
     def basis(self, ctx: Context) -> Basis:
-        across = [loads(ctx.chain, ctx.meas, None, g) for g in gravity_across(ctx.model.gravity)]
+        phi = np.asarray(self.masses, float) if self.masses else None
+        across = [loads(ctx.chain, ctx.meas, phi, g) for g in self.across(ctx.model)]
         N, n = ctx.meas.joints.shape
         b = np.zeros((N, n, 2 * len(self.joints)))
         for i, k in enumerate(self.joints):
@@ -162,7 +169,7 @@ class TiltedCompliance(Effect):
                      f"({_load_unit(ctx.model, j)})")
 
     def label(self, model):
-        return super().label(model) + " tilted base"
+        return super().label(model) + " tilted base" + (" identified masses" if self.masses else "")
 
     def explain(self, model):
         who = ", ".join(model.joint_names[j] for j in self.joints)
