@@ -384,7 +384,8 @@ class _Search:
         on the true masses the spring alone). The search goes on from there, and finds the others again if they are
         more than that. True if taken."""
         keep = [i for i, e in enumerate(self.chosen) if _mass_driven(e)]
-        if len(keep) == len(self.chosen) or self.late("the mass data under the compliances alone"):
+        if len(keep) == len(self.chosen) or not self.model.has_mass or self.meas.tau is not None \
+                or self.late("the mass data under the compliances alone"):  # _identify_masses's own terms
             return False
         chosen, findings, said = [self.chosen[i] for i in keep], [dict(self.findings[i]) for i in keep], list(notes)
         base = self.fit(chosen, self.current.x)
