@@ -28,6 +28,14 @@ fitting it again would give back nearly the same fit, so the passes stop there. 
 was 5 % worse on one draw: the soft play's search starts from the sharp one's switch)."""
 SATURATES = 1.5
 """A play with fitted softness must reach tanh(1.5) = 0.9 of its flanks somewhere, else it is a spring."""
+SHARPEST = 20.0
+"""RMS of the fitted softness's argument Z beta at which a soft play is as sharp as the sharp one (transition 0.05
+of a unit-RMS load)..."""
+SHARPNESS_RIDGE = 0.001
+"""...and the share of the offsets' weighted sum of squares a ridge on beta costs there. Without it a play that is
+sharp on the data has no sharpest softness: the fit ran on along a flat valley (RMS 200-1200) to its evaluation cap,
+and where it stopped (and the switch between the poses) followed rounding, by memory layout: arm6 play 2x #0 predicted
+new poses at 0.51, 0.62 or 0.88x the noise from run to run."""
 
 
 @dataclass(frozen=True)
@@ -347,7 +355,16 @@ def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray
         th = np.tanh(Z @ p[1:])
         return -sw[:, None] * np.column_stack([0.5 * th, 0.5 * p[0] * (1.0 - th**2)[:, None] * Z])
 
-    p = _minpack_lm(fun, jac, np.r_[amplitude(Z @ start), start], 100)
+    ridge = np.sqrt(SHARPNESS_RIDGE * float(np.sum((sw * e) ** 2))) / SHARPEST  # see SHARPNESS_RIDGE
+    k = Z.shape[1]
+
+    def fun_ridged(p):
+        return np.r_[fun(p), ridge * p[1:]]
+
+    def jac_ridged(p):
+        return np.vstack([jac(p), np.c_[np.zeros((k, 1)), ridge * np.eye(k)]])
+
+    p = _minpack_lm(fun_ridged, jac_ridged, np.r_[amplitude(Z @ start), start], 100)
     return p[1:] * np.sign(p[0])
 
 

@@ -735,3 +735,25 @@ def test_an_svd_that_does_not_converge_falls_back_to_gesvd(monkeypatch, seed):
     got = gravity._svd(A, full_matrices=False)
     assert np.allclose(got[1], want[1]) and np.allclose(np.abs(got[2]), np.abs(want[2]))
     assert np.allclose(gravity._svd(A, compute_uv=False), want[1])
+
+
+def test_a_sharp_plays_softness_is_one_answer_whatever_the_memory_layout(seed):
+    """A play that is sharp on the data (offsets b/2 sign(load) + noise, drawn features and switch): the soft fit's
+    argument stays within a few SHARPEST, and the answer is the same with the features in C or Fortran order.
+    Without the ridge on it the fit ran on along a flat valley to its evaluation cap (RMS 200-1200), and where it
+    stopped followed rounding: arm6 play 2x #0 predicted new poses at 0.51, 0.62 or 0.88x the noise from run to run."""
+    from calib_core.diagnosis.plays import SHARPEST, _softness
+
+    rng = np.random.default_rng((seed, 21))
+    N, k = int(rng.integers(100, 200)), int(rng.integers(4, 12))
+    Z = np.linalg.qr(rng.normal(size=(N, k)))[0] * np.sqrt(N)  # unit-RMS orthogonal features, as _LoadFeatures
+    truth = rng.normal(size=k)
+    b = rng.uniform(1e-4, 1e-3)
+    e = 0.5 * b * np.sign(Z @ truth) + rng.normal(0, 0.05 * b, N)
+    w = rng.uniform(0.5, 2.0, N)
+    start = truth / np.linalg.norm(truth) + rng.normal(0, 0.2, k)
+    c = _softness(np.ascontiguousarray(Z), e, w, start)
+    f = _softness(np.asfortranarray(Z), e, w, start)
+    assert np.linalg.norm(c) < 5 * SHARPEST, np.linalg.norm(c)
+    assert np.allclose(c, f, rtol=1e-6, atol=1e-9 * np.linalg.norm(c)), (c, f)
+    assert np.mean(np.sign(Z @ c) == np.sign(Z @ truth)) > 0.9  # the switch is the play's
