@@ -3,6 +3,7 @@ presented from the final parameter table, and given per-cause figures that chain
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats
 
 from ..effects import Effect, SessionStep
 from ..effects.structure import ORDER_NAMES
@@ -135,6 +136,10 @@ def _plays_beyond_motion(cal: Calibration, f: dict, meas: Measurements) -> str:
 SIGNIFICANT_STD = 2.0
 """A parameter's value is beyond its noise when it is more than this many std from zero: a joint of a finding on
 several joints carries a share only then, and a compliance below -SIGNIFICANT_STD std is negative for sure."""
+STRONG_STD = 3.0
+"""A compliance of several joints is tried on its joints beyond this many std of zero before those beyond
+SIGNIFICANT_STD (_Search.narrowed; kept when held-out poses do not find the wider form better), and so is a rival
+one among the look-alikes (_best_of_lookalikes)."""
 FOLLOWS = {"joint_compliance": "the load on {j}", "backlash": "the sign of the load on {j}",
            "link_deflection": "the bending load on {j}", "cyclic_joint_error": "the angle of {j}",
            "joint_scale": "the travel of {j}", "axis_straightness": "the travel of {j}",
@@ -173,6 +178,23 @@ def _beyond(p: dict, k: float = SIGNIFICANT_STD) -> float:
     return float(p["value"]) / float(std)
 
 
+def _jointly_beyond(cal: Calibration, names: list[str]) -> bool | None:
+    """The parameters `names` of cal's effects, together, are beyond SIGNIFICANT_STD std of zero (the chi-square of
+    the vector with its covariance against the two-sided tail of that many std); None where the covariance is not
+    known. A telescopic stage's bending and its guide's turn trade (each within 2 std, the pair at p = 1e-20)."""
+    cov = cal.solution.cov
+    if cov is None:
+        return None
+    pos = {n: len(cal.free) + i for i, n in enumerate(n for e in cal.effects for n in e.parameter_names(cal.model))}
+    idx = [pos[n] for n in names if n in pos]
+    if not idx or not np.all(np.isfinite(cov[np.ix_(idx, idx)])):
+        return None
+    v, C = cal.solution.x[idx], cov[np.ix_(idx, idx)]
+    d = np.sqrt(np.maximum(C.diagonal(), 1e-300))
+    z2 = float((v / d) @ np.linalg.lstsq(C / np.outer(d, d), v / d, rcond=1e-12)[0])
+    return bool(stats.chi2.sf(z2, len(idx)) < 2 * stats.norm.sf(SIGNIFICANT_STD))
+
+
 def present_findings(cal: Calibration, findings: list[dict]) -> None:
     """How the answer presents each finding, from the final model's parameter table (what is fitted is not touched):
     its parameters and the values its evidence quotes are the table's (a later refit moves them).
@@ -189,12 +211,13 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
             continue  # the residual's `unexplained` (with the correction it kept); a step is presented as a cause
         params = f["parameters"] = [{**p, **table.get(p["name"], {})} for p in f["parameters"]]
         sized = all(p.get("std") is not None and np.isfinite(p["std"]) and p["std"] > 0 for p in params)
-        if params and sized and not any(abs(_beyond(p)) > SIGNIFICANT_STD for p in params):
+        if params and sized and not any(abs(_beyond(p)) > SIGNIFICANT_STD for p in params) \
+                and not _jointly_beyond(cal, [p["name"] for p in params]):
             # what it explained when it was found, the causes found after it explain: no size the final model shows
             f["significant"] = False
             f["evidence"] += (f"; in the final model none of its parameters is beyond {SIGNIFICANT_STD:g} std of "
-                              f"zero: the causes found after it explain what it explained, so it is not named as a "
-                              f"cause of its own (the model keeps it; its size there is not known)")
+                              f"zero, alone or together: the causes found after it explain what it explained, so it "
+                              f"is not named as a cause of its own (the model keeps it; its size there is not known)")
         f["evidence"] += "; in the final model " + ", ".join(
             f"{p['name']} = {p['value']:.4g} +/- {'(undetermined)' if p['std'] is None else format(p['std'], '.2g')}"
             f"{' ' + p['unit'] if p.get('unit') not in (None, '', '1') else ''}" for p in params[:4])

@@ -8,10 +8,10 @@ import numpy as np
 
 from .. import kinematics as K
 from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedLinkDeflection,
-                       has_loads)
+                       has_loads, on_joints)
 from ..effects.structure import STEP_WINDOW, at_gap, session_clock
 from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
-from .findings import _finding, _who
+from .findings import STRONG_STD, _beyond, _finding, _who
 from .screening import Candidate, _thresholds, screen
 
 LOOKALIKE = 0.8
@@ -30,6 +30,11 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
               and a.explained >= share * c.explained]
     for alt in rivals[:MAX_LOOKALIKES]:
         tried.append((alt, fit(chosen + [alt.effect], x_ref)))
+    for alt, t in list(tried):  # springs on two joints of five are as few parameters as a link's bending
+        narrow = _on_strong_joints(alt.effect, t, model)
+        if narrow is not None:
+            tried.append((Candidate(**{**alt.__dict__, "effect": narrow, "label": narrow.label(model)}),
+                          fit(chosen + [narrow], x_ref)))
     tried.sort(key=lambda t: t[1].metrics()["holdout_rms_mm"])
     best_fit = tried[0][1]
     # parsimony: the simplest form that held-out poses cannot show to be worse than the best one
@@ -43,6 +48,18 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
              for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best
              and same(a.effect) != same(tried[0][0].effect)]
     return tried[0][0], tried[0][1], alike
+
+
+def _on_strong_joints(e: Effect, cal, model) -> Effect | None:
+    """A plain compliance of several joints on those of its joints beyond STRONG_STD std of zero in `cal` (None if
+    all or none are): the look-alikes judge a rival spread over the arm in the form the search would narrow it to,
+    not by its count of parameters (arm6, springs on A2 and A3 at 1x: A3's bending kept over the compliance of
+    A2-A6 as the simpler form)."""
+    if not (type(e) is JointCompliance and not e.stiffening and not e.load_coef and len(e.joints) > 2):
+        return None
+    table = {p["name"]: p for p in cal.parameters()}
+    strong = tuple(j for j in e.joints if _beyond(table.get(f"{model.joint_names[j]}.compliance", {})) > STRONG_STD)
+    return on_joints(e, strong) if 0 < len(strong) < len(e.joints) else None
 
 
 STIFFENING = (0.5, 1.5, 4.0, 12.0, 30.0)

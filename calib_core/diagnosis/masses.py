@@ -8,7 +8,7 @@ import numpy as np
 from scipy import stats
 
 from .. import kinematics as K
-from ..effects import Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedCompliance
+from ..effects import Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedCompliance
 from ..effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJointCompliance, _as_tuple, body_parameters,
                                lateral_axes, load_mix_for, mass_step, tilted)
 from ..identify import Calibration, widened
@@ -17,7 +17,7 @@ from ..kinematics import _cross
 from ..model import RobotModel
 from .evidence import REFINE_ALPHA, _p, holdout_gain
 from .fitter import _Fitter
-from .screening import _robust_sigma, _weighted_system, weighted_misfit
+from .screening import _robust_sigma, _weighted_columns, _weighted_system, orthonormal_basis, weighted_misfit
 
 
 def _load_pool(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> dict[int, LoadCompliance]:
@@ -150,9 +150,17 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
         effects = [dataclasses.replace(e, masses=carried.masses, gravity=carried.gravity) if i in idx else e
                    for i, e in enumerate(chosen)]
         t = fit(effects, current.x, folds=0)
-    try:  # two starts: from a tilt that trades with the first moments the steps can stop in a local minimum
-        paths = [_mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, tilt_first)
-                 for tilt_first in (False, True)]
+    try:  # two starts: from a tilt that trades with the first moments the steps can stop in a local minimum; the
+        # second from the best of a ring of tilts (_tilt_scan)
+        paths = [_mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, False)]
+        g_scan = _tilt_scan(t, effects, idx, meas)
+        t_scan, effects_scan = t, effects
+        if g_scan is not None:
+            effects_scan = [dataclasses.replace(e, gravity=tuple(float(v) for v in g_scan)) if i in idx else e
+                            for i, e in enumerate(effects)]
+            t_scan = fit(effects_scan, t.x, folds=0, model_error_mm=t.model_error_mm)
+        paths.append(_mass_steps(chosen, idx, effects_scan, t_scan, phi, g if g_scan is None else g_scan,
+                                 phi_model, model, fit, True))
     except ValueError:
         return current
     _, effects, x = min(paths, key=lambda p: p[0])
@@ -182,6 +190,51 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
                  "exactly level); the compliances' std are conditional on these masses and this gravity (the "
                  "prediction std carry their doubt)")
     return trial
+
+
+TILT_SCAN_RAD = 0.02
+TILT_SCAN_DIRECTIONS = 8
+"""The ring of tilts (TILT_SCAN_RAD about TILT_SCAN_DIRECTIONS horizontal axes) a mass identification's second start
+is chosen from. A vertical axis carries no load under the model's gravity, so its compliance and a tilt are
+bilinear at a saddle there: the Gauss-Newton step from a level base turned gravity by 0.9 mrad where the torso tree
+was 25 mrad off level, and the steps stopped (a test world in about 20). The compliances are linear in gravity's
+direction given the rest, so each tilt of the ring is judged by a linear solve at the current linearisation."""
+
+
+def _tilt_scan(t: Calibration, effects: list[Effect], idx: list[int], meas: Measurements) -> np.ndarray | None:
+    """Gravity (3,) m/s^2 of the tilt in the ring that leaves the least weighted misfit with the compliances `idx`
+    of `effects` re-solved linearly beside the geometry and the other causes (t's linearisation), or None if no tilt
+    of the ring beats the gravity they carry."""
+    model = t.model
+    g = _gravity(effects[idx[0]], model)
+    sigma = _robust_sigma(t, t.sigma_mm)
+    chain, dp = t.robot.chain(meas.joints, meas)
+    xb = t.x if t.x_basis is None else t.x_basis
+    ctx = Context(model, K.Chain(model, xb, meas.joints, t.R0, meas.labels), meas)
+    Jq = chain.joint_jacobian()
+    geometry = (chain.jacobian()[:, :, t.free] / sigma[:, None, None]).reshape(3 * len(sigma), -1)
+    others = [_weighted_columns(e, ctx, Jq, sigma)[0] for i, e in enumerate(effects) if i not in idx]
+    Q = orthonormal_basis(np.concatenate([geometry] + others, axis=1))
+
+    def columns(gravity: np.ndarray) -> np.ndarray:
+        B = np.concatenate([_weighted_columns(dataclasses.replace(effects[i], gravity=tuple(gravity)), ctx, Jq,
+                                              sigma)[0] for i in idx], axis=1)
+        return B - Q @ (Q.T @ B)
+
+    here = columns(g)
+    values = np.concatenate([np.asarray(t.effect_values[i], float) for i in idx])
+    r = ((meas.points - chain.p - dp) / sigma[:, None]).ravel()
+    r = r - Q @ (Q.T @ r) + here @ values  # the compliances' part put back
+
+    def misfit(B: np.ndarray) -> float:
+        v = np.linalg.lstsq(B, r, rcond=None)[0]
+        return float(np.sum((r - B @ v) ** 2))
+
+    turns = [TILT_SCAN_RAD * np.array([np.cos(a), np.sin(a)])
+             for a in 2 * np.pi * np.arange(TILT_SCAN_DIRECTIONS) / TILT_SCAN_DIRECTIONS]
+    scores = [misfit(columns(tilted(g, turn))) for turn in turns]
+    best = int(np.argmin(scores))
+    return tilted(g, turns[best]) if scores[best] < misfit(here) else None
 
 
 def _mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, tilt_first: bool) -> tuple:

@@ -74,10 +74,14 @@ def _weighted_system_of(cal: Calibration, meas: Measurements, sigma: np.ndarray,
         Pq, Pp = effect_bases(model, meas, list(cal.effects), x_ref if cal.x_basis is None else cal.x_basis, cal.R0)
         cols.append((chain.joint_jacobian() @ Pq) + Pp)
     J = (np.concatenate(cols, axis=2) / sigma[:, None, None]).reshape(len(r.ravel()), -1)
+    return r.ravel(), orthonormal_basis(J), chain
+
+
+def orthonormal_basis(J: np.ndarray) -> np.ndarray:
+    """(m, r): an orthonormal basis of J's columns, its rank unit-free (columns scaled to unit norm first)."""
     norms = np.linalg.norm(J, axis=0)
-    U, s, _ = np.linalg.svd(J / np.where(norms > 0, norms, 1.0), full_matrices=False)  # unit-free rank
-    Q = U[:, s > s[0] * 1e-8]
-    return r.ravel(), Q, chain
+    U, s, _ = np.linalg.svd(J / np.where(norms > 0, norms, 1.0), full_matrices=False)
+    return U[:, s > s[0] * 1e-8]
 
 
 def weighted_misfit(cal: Calibration, sigma: np.ndarray | None = None) -> float:

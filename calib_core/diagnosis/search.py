@@ -18,7 +18,8 @@ from ..io import Measurements
 from ..model import RobotModel
 from ..select import select_geometry
 from .evidence import ACCEPT_ALPHA, HOLDOUT_ALPHA, _better, _p, holdout_gain, holdout_ms
-from .findings import SIGNIFICANT_STD, _beyond, _chain, _finding, _judge_sizes, _who, present_findings
+from .findings import (SIGNIFICANT_STD, STRONG_STD, _beyond, _chain, _finding, _judge_sizes, _who,
+                       present_findings)
 from .fitter import _Fitter
 from .lookalikes import _best_of_lookalikes, _cause, _merge_alike, _refine, _refine_step, _revisit
 from .masses import (_distributed, _identify_masses, _lateral, _load_pool, _mass_driven, _on_carried_masses,
@@ -53,9 +54,6 @@ is read off the data is found again per fold here, which came out pessimistic (M
 mm^2 where the full refit gives 0.072): it is skipped only when its held-out error does not drop at all."""
 SAME_COLUMNS = 1e-3
 """Candidates whose fitted displacements differ by less than this share are decided by one full fit (_same_columns)."""
-STRONG_STD = 3.0
-"""_Search.narrowed tries a compliance of several joints on its joints beyond this many std of zero before those beyond
-SIGNIFICANT_STD (kept when held-out poses do not find the wider form better)."""
 NOISE_LIKE = 3.0
 """A residual that follows nothing is taken for noise (the floor re-estimated) only below this multiple of
 the assumed floor; beyond it, it is reported as unexplained. So is one that follows something when no cause was

@@ -9,7 +9,8 @@ from ..io import Measurements
 from ..kinematics import Chain, nominal_vector
 from ..model import ANGULAR, GEOMETRIC, RobotModel
 from .base import Basis, Context, Effect, apply, has_loads, loads
-from .cartesian_effects import AxisStraightness, LinkDeflection, LinkGrowth, ThermalDrift, TiltedLinkDeflection
+from .cartesian_effects import (AxisStraightness, GuidedLinkDeflection, LinkDeflection, LinkGrowth, ThermalDrift,
+                                TiltedLinkDeflection)
 from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale, TiltedCompliance, gravity_across
 from .residual import ResidualField
@@ -19,7 +20,7 @@ CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointE
                                    AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, LateralCompliance,
                                    LateralJointCompliance,
                                    SessionStep, Probe, TargetStep, LinkGrowth, TiltedCompliance,
-                                   TiltedLinkDeflection)}
+                                   TiltedLinkDeflection, GuidedLinkDeflection)}
 KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
          "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
          "thermal_drift": ThermalDrift, "unexplained": ResidualField}
@@ -57,6 +58,8 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
         out += [Backlash((j,), transition=float(Backlash.TRANSITION_SHARE * big[j])) for j in loaded]
         if model.has_mass:
             out += [LinkDeflection((k,)) for k in range(1, n)]
+            # a telescopic stage's tube also turns in its guide: a rival form of its bending (held-out parsimony)
+            out += [GuidedLinkDeflection((k,)) for k in range(1, n) if model.prismatic[k] and model.moving[k]]
             # every bearing tilting under its bending moment at once (vertical axes carry one too)
             bent = [j for j in range(n) if model.moving[j] and model.mass[model.descendants(j)].sum() > 0]
             if len(bent) > 1:
@@ -116,4 +119,4 @@ def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
 
 __all__ = ["effect_state", "on_joints", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LateralJointCompliance", "LoadCompliance", "Probe", "SessionStep", "TargetStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
            "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "LinkGrowth", "ThermalDrift",
-           "TiltedCompliance", "TiltedLinkDeflection"]
+           "TiltedCompliance", "TiltedLinkDeflection", "GuidedLinkDeflection"]

@@ -754,6 +754,7 @@ def test_a_sharp_plays_softness_is_one_answer_whatever_the_memory_layout(seed):
     start = truth / np.linalg.norm(truth) + rng.normal(0, 0.2, k)
     c = _softness(np.ascontiguousarray(Z), e, w, start)
     f = _softness(np.asfortranarray(Z), e, w, start)
-    assert np.linalg.norm(c) < 5 * SHARPEST, np.linalg.norm(c)
-    assert np.allclose(c, f, rtol=1e-6, atol=1e-9 * np.linalg.norm(c)), (c, f)
-    assert np.mean(np.sign(Z @ c) == np.sign(Z @ truth)) > 0.9  # the switch is the play's
+    assert np.linalg.norm(c) < 5 * SHARPEST, (seed, np.linalg.norm(c))
+    # one answer to rounding (1e-8-1e-7 of its size on 2 of 600 draws), where the unridged fits differed by O(1)
+    assert np.abs(c - f).max() <= 1e-5 * np.linalg.norm(c), (seed, c, f)
+    assert np.mean(np.sign(Z @ c) == np.sign(Z @ truth)) > 0.9, seed  # the switch is the play's
