@@ -32,10 +32,6 @@ SHARPEST = 20.0
 """RMS of the fitted softness's argument Z beta at which a soft play is as sharp as the sharp one (transition 0.05
 of a unit-RMS load)..."""
 SHARPNESS_RIDGE = 0.001
-SHARP_ENOUGH = 0.5
-"""A soft fit that the ridge holds beyond this share of SHARPEST wanted to be sharper still: it is kept as a sharp play
-on the switch it found (as a soft one, held near SHARPEST, it predicted hard plays' new poses near the switch at
-1.1-1.3x the noise where the sharp form does 0.4-1.0x: benchmarks.detection, arm6 hard play 2x #0 and 4x #1)."""
 """...and the share of the offsets' weighted sum of squares a ridge on beta costs there. Without it a play that is
 sharp on the data has no sharpest softness: the fit ran on along a flat valley (RMS 200-1200) to its evaluation cap,
 and where it stopped (and the switch between the poses) followed rounding, by memory layout: arm6 play 2x #0 predicted
@@ -267,8 +263,7 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
             for _ in range(1 + PLAY_PASSES):
                 e, _ = _joint_offsets(col, partial)  # the residual as an offset of joint j, per pose
                 beta = _softness(feats.Z, e, w / sigma**2, beta) if soft else _switch(feats.Z, e, w / sigma**2, beta)
-                as_sharp = soft and float(np.sqrt(np.mean((feats.Z @ beta) ** 2))) >= SHARP_ENOUGH * SHARPEST
-                found = feats.play(j, beta, soft and not as_sharp)
+                found = feats.play(j, beta, soft)
                 if found is None:
                     break
                 settled = play is not None and _flank_moved(play, found, ref_ctx) <= PLAY_SETTLED
