@@ -30,24 +30,30 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
               and a.explained >= share * c.explained]
     for alt in rivals[:MAX_LOOKALIKES]:
         tried.append((alt, fit(chosen + [alt.effect], x_ref)))
-    for alt, t in list(tried):  # springs on two joints of five are as few parameters as a link's bending
-        narrow = _on_strong_joints(alt.effect, t, model)
-        if narrow is not None:
-            tried.append((Candidate(**{**alt.__dict__, "effect": narrow, "label": narrow.label(model)}),
-                          fit(chosen + [narrow], x_ref)))
-    tried.sort(key=lambda t: t[1].metrics()["holdout_rms_mm"])
-    best_fit = tried[0][1]
-    # parsimony: the simplest form that held-out poses cannot show to be worse than the best one
-    by_size = sorted(tried, key=lambda t: (len(t[0].effect.parameter_names(model)), t[1].metrics()["holdout_rms_mm"]))
-    pick = next(t for t in by_size if t is tried[0] or not _better(t[1], best_fit, 0.05))
-    tried.remove(pick)
-    tried.insert(0, pick)
+    tried = _simplest_first(tried, model)
+    # a compliance of several joints that the simpler pick passed over, on its strong joints: springs on two joints
+    # of five are as few parameters as a link's bending (only then: each is a fit of the whole model)
+    h = tried[0][1].metrics()["holdout_rms_mm"]
+    narrowed = [(Candidate(**{**a.__dict__, "effect": n, "label": n.label(model)}), n) for a, t in tried[1:]
+                if t.metrics()["holdout_rms_mm"] < h and (n := _on_strong_joints(a.effect, t, model)) is not None]
+    if narrowed:
+        tried = _simplest_first(tried + [(a, fit(chosen + [n], x_ref)) for a, n in narrowed], model)
     best = tried[0][1].metrics()["holdout_rms_mm"]
     same = lambda e: (e.kind, e.joints, e.harmonic)  # noqa: E731
     alike = [{**_who(a.effect, model), "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
              for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best
              and same(a.effect) != same(tried[0][0].effect)]
     return tried[0][0], tried[0][1], alike
+
+
+def _simplest_first(tried: list, model) -> list:
+    """(candidate, fit) pairs by held-out error, the pick first: the simplest form that held-out poses cannot show to
+    be worse than the best one (parsimony)."""
+    tried = sorted(tried, key=lambda t: t[1].metrics()["holdout_rms_mm"])
+    best_fit = tried[0][1]
+    by_size = sorted(tried, key=lambda t: (len(t[0].effect.parameter_names(model)), t[1].metrics()["holdout_rms_mm"]))
+    pick = next(t for t in by_size if t is tried[0] or not _better(t[1], best_fit, 0.05))
+    return [pick] + [t for t in tried if t is not pick]
 
 
 def _on_strong_joints(e: Effect, cal, model) -> Effect | None:
