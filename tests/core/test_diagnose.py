@@ -16,7 +16,7 @@ from calib_core.diagnosis import plays as plays_module
 from calib_core.diagnosis.plays import _identified_backlash
 from calib_core.diagnosis.search import _Search
 from calib_core.effects import CyclicJointError, JointCompliance, LateralJointCompliance, candidates
-from calib_core.identify import CalibratedRobot, evaluate, identify
+from calib_core.identify import CalibratedRobot, identify
 from calib_core.model import parse_model
 from calib_core.pipeline import calibrate
 from calib_core.robots import arm6, spray7
