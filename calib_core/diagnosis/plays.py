@@ -348,23 +348,18 @@ def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray
     starts = [beta / t for t in (0.05, 0.15, 0.5, 1.5)] + [linear * a for a in (0.5, 1.0, 2.0, 4.0)]
     start = min(starts, key=lambda bb: cost(Z @ bb))
 
+    ridge = np.sqrt(SHARPNESS_RIDGE * float(np.sum((sw * e) ** 2))) / SHARPEST  # see SHARPNESS_RIDGE
+    ridge_rows = np.c_[np.zeros((Z.shape[1], 1)), ridge * np.eye(Z.shape[1])]
+
     def fun(p):
-        return sw * (e - 0.5 * p[0] * np.tanh(Z @ p[1:]))
+        return np.r_[sw * (e - 0.5 * p[0] * np.tanh(Z @ p[1:])), ridge * p[1:]]
 
     def jac(p):
         th = np.tanh(Z @ p[1:])
-        return -sw[:, None] * np.column_stack([0.5 * th, 0.5 * p[0] * (1.0 - th**2)[:, None] * Z])
+        return np.vstack([-sw[:, None] * np.column_stack([0.5 * th, 0.5 * p[0] * (1.0 - th**2)[:, None] * Z]),
+                          ridge_rows])
 
-    ridge = np.sqrt(SHARPNESS_RIDGE * float(np.sum((sw * e) ** 2))) / SHARPEST  # see SHARPNESS_RIDGE
-    k = Z.shape[1]
-
-    def fun_ridged(p):
-        return np.r_[fun(p), ridge * p[1:]]
-
-    def jac_ridged(p):
-        return np.vstack([jac(p), np.c_[np.zeros((k, 1)), ridge * np.eye(k)]])
-
-    p = _minpack_lm(fun_ridged, jac_ridged, np.r_[amplitude(Z @ start), start], 100)
+    p = _minpack_lm(fun, jac, np.r_[amplitude(Z @ start), start], 100)
     return p[1:] * np.sign(p[0])
 
 

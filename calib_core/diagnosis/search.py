@@ -186,7 +186,8 @@ class _Search:
                 refused.append(c)
                 continue
             c, trial, alike = _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, others, x_ref)
-            rivals = [a.effect for a in ranked if a.effect.label(model) in {f["form"] for f in alike}]
+            alike_forms = {f["form"] for f in alike}
+            rivals = [a.effect for a in ranked if a.effect.label(model) in alike_forms]
             c, trial, forms = _refine(c, trial, others, self.load_pool, play_pool, model, fit, x_ref, rivals)
             alike = _merge_alike(alike, forms)
             if isinstance(c.effect, SessionStep):

@@ -131,6 +131,14 @@ def _bodies(ch, phi: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     return mass, ch.o_beta + np.einsum("jnab,jb->jna", ch.R, lever)
 
 
+def _beam(ch, k: int, g: np.ndarray | None) -> tuple:
+    """The link ending at row k as a beam: its root and tip (N, 3) mm, length (N,) mm, unit direction (N, 3), and
+    gravity (N, 3) m/s^2 in the measurement frame (the model's, or `g` in the base frame)."""
+    start, end, L = segment(ch, k)
+    u = (end - start) / np.maximum(L, 1e-9)[:, None]
+    return start, end, L, u, np.broadcast_to(gravity_world(ch, g), u.shape)
+
+
 def bending(ch, k: int, payload_kg: np.ndarray, phi: np.ndarray | None = None, g: np.ndarray | None = None
             ) -> tuple[np.ndarray, np.ndarray]:
     """Displacement (N, 3) mm of the tool point per unit 1/(EI) of the link ending at row k (LinkDeflection), when
@@ -138,9 +146,7 @@ def bending(ch, k: int, payload_kg: np.ndarray, phi: np.ndarray | None = None, g
     first moment m*c (kg*mm, body frame) instead of the model's mass data; `g` (3,) m/s^2 in the base frame instead
     of the model's gravity (the mass step differentiates the bending in both)."""
     m = ch.model
-    start, end, L = segment(ch, k)
-    u = (end - start) / np.maximum(L, 1e-9)[:, None]
-    g = np.broadcast_to(gravity_world(ch, g), u.shape)
+    start, end, L, u, g = _beam(ch, k, g)
     # every body beyond the link and the payload, each acting at its station along the beam
     carried = m.descendants(k)
     mass_k, com = _bodies(ch, phi)
@@ -170,9 +176,7 @@ def guide_turn(ch, k: int, payload_kg: np.ndarray, phi: np.ndarray | None = None
     bearings give under that moment as the tube bends under it, and their turn moves the tool through the whole
     length that is out; `phi` and `g` as in bending."""
     m = ch.model
-    start, end, L = segment(ch, k)
-    u = (end - start) / np.maximum(L, 1e-9)[:, None]
-    g = np.broadcast_to(gravity_world(ch, g), u.shape)
+    start, _, L, u, g = _beam(ch, k, g)
     mass_k, com = _bodies(ch, phi)
     carried = m.descendants(k)
     moment = (mass_k[carried, None, None] * _cross(com[carried] - start, g)).sum(0)  # N*mm

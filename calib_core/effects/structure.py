@@ -17,10 +17,10 @@ from .joint_effects import _offset_unit
 
 
 CLOCKS = {"time": "timestamp", "sequence": "sequence"}
-ORDER_NAMES = {"time": "time order", "sequence": "measurement order (sequence)", "row": "row order (no timestamps)"}
-"""A clock's order as the answer names it."""
 """A step's source -> the measurement column that places each pose in the session (the row order has none: it is
 only a guess at the order, so a step in row order is never a model extension)."""
+ORDER_NAMES = {"time": "time order", "sequence": "measurement order (sequence)", "row": "row order (no timestamps)"}
+"""A clock's order as the answer names it."""
 
 
 def session_clock(meas) -> tuple[np.ndarray, str]:
