@@ -144,7 +144,7 @@ def fixed_forms(model, train, held) -> list[tuple[str, dict, float, object]]:
                 evaluate(masses, held), time.time() - t0, masses))
     t0 = time.time()
     found = _shared_motion(masses, train, masses.sigma_mm, masses.x_basis) or []
-    weighted = _with_pose_noise(masses, fit, train, next((f for f in found if f.p_value < ALPHA), None))
+    weighted = _with_pose_noise(masses, fit, train, [f for f in found if f.p_value < ALPHA])
     last = masses if weighted is None else weighted[0]
     if weighted is None:
         print("the hands' shared motion as noise of each pose: not kept (held-out folds object)", flush=True)

@@ -304,14 +304,14 @@ class ChainEvaluations:
 
 def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None,
          prior_scale: float = 1.0, *, evals: ChainEvaluations | None = None, covariance: bool = True,
-         damping: float = 1e-4, ftol: float = 1e-10, pose_noise: tuple[np.ndarray, float] | None = None,
+         damping: float = 1e-4, ftol: float = 1e-10, pose_noise: tuple[np.ndarray, np.ndarray] | None = None,
          max_iter: int = 100) -> Solution:
     """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian.
 
-    `pose_noise` (Z (N, 3, U) mm per unit, tau): a motion the targets of one pose share (the joints upstream of
-    them landing a little differently at each visit) as noise of that pose, one nuisance value per pose with prior
-    std tau beside the parameters. That is generalised least squares with per-pose covariance s^2 I + tau^2 z z'
-    (a random effect). The nuisance values are left out of the solution: its x and cov are the model's block, and
+    `pose_noise` (Z (N, 3, U) mm per unit, tau (U,)): motions the targets of one pose share (the joints upstream of
+    them landing a little differently at each visit) as noise of that pose, one nuisance value per pose and motion
+    with prior std tau beside the parameters. That is generalised least squares with per-pose covariance
+    s^2 I + sum_k tau_k^2 z_k z_k' (a random effect). The nuisance values are left out of the solution: its x and cov are the model's block, and
     its residual is measured minus the model's prediction. The block of the posterior covariance (solve.py) is
     GLS's marginal (X' V^-1 X + L)^-1 exactly (a Schur complement: the nuisance values integrated out).
 
@@ -348,7 +348,7 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
                              covariance=covariance, damping=damping, ftol=ftol, max_iter=max_iter, **prior)
     P, U = p_geo + K_eff, Z.shape[2]
     std = prior.get("prior_std", np.full(P, np.inf))
-    prior = {"prior": np.r_[nominal, np.zeros(U)], "prior_std": np.r_[std, np.full(U, pose_noise[1])]}
+    prior = {"prior": np.r_[nominal, np.zeros(U)], "prior_std": np.r_[std, np.broadcast_to(pose_noise[1], U)]}
     begin = np.r_[nominal if start is None else start[:P], np.zeros(U)]
     sol = least_squares(residual_jac, begin, sigma, loss=loss, covariance=covariance, damping=damping, ftol=ftol,
                         **prior)
@@ -446,7 +446,7 @@ def identify(
     x_ref: np.ndarray | None = None,
     prior_scale: float = 1.0,
     refold: Callable[[Calibration], Callable[[np.ndarray], tuple[Effect, ...]]] | None = None,
-    pose_noise: tuple[np.ndarray, float] | None = None,
+    pose_noise: tuple[np.ndarray, np.ndarray] | None = None,
     start: Calibration | None = None,
     model_error_mm: float | None = None,
 ) -> Calibration:
@@ -459,7 +459,7 @@ def identify(
     multiplies the precision of the default prior toward nominal of the joint parameters (> 1: a stronger
     pull to nominal; with regularize=True only). `refold(cal)(train)` gives each fold the effects to refit on
     its training poses (train: (N,) bool), for effects whose form was itself read off this data (a play's switch
-    found on the residual): the held-out poses then have no say in it. `pose_noise` (Z, tau) weights a motion the
+    found on the residual): the held-out poses then have no say in it. `pose_noise` (Z, tau) weights motions the
     targets of one pose share as noise of that pose (generalised least squares; see _fit). `start`, a calibration
     of the same model on the same poses whose effects are all among `effects`, is where LM begins (its geometry and
     effect values; new effects at 0): the optimum does not depend on it beyond the convergence tolerance, but a

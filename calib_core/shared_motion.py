@@ -114,14 +114,24 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
     return sorted(found, key=lambda s: -s.share)
 
 
-def pose_noise(chain: Chain, meas: Measurements, s: SharedMotion) -> tuple[np.ndarray, float]:
-    """(Z, tau) for identify's `pose_noise`: the motion s as noise of each pose. Z (N, 3, U) mm per unit of the
-    motion: each row's displacement in its pose's column (Measurements.pose_index, U poses); tau its RMS per pose."""
-    u = {what: v for what, _, v in motions(chain)}[s.motion]
+def pose_noise(chain: Chain, meas: Measurements, found: list[SharedMotion], max_columns: int
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(Z, tau) for identify's `pose_noise`: the motions found (largest share first) together as noise of each pose,
+    each with its own size (per-pose covariance sum_k tau_k^2 z_k z_k'). A motion that only resembles the true one
+    (the base shifting where a torso joint turns with its passive partner) weighs the wrong direction alone; together
+    they cover it. Z (N, 3, k U) mm per unit: each row's displacement in its pose's column (Measurements.pose_index,
+    U poses) of each motion; tau (k U,) their RMS per pose. As many motions as fit in max_columns (one at least);
+    None when none has a size."""
+    moves = {what: v for what, _, v in motions(chain)}
     unit = meas.pose_index()
-    Z = np.zeros((len(u), 3, int(unit.max()) + 1))
-    Z[np.arange(len(u)), :, unit] = u
-    return Z, s.size
+    U = int(unit.max()) + 1
+    sized = [s for s in found if s.size > 0][:max(max_columns // U, 1)]
+    if not sized:
+        return None
+    Z = np.zeros((len(unit), 3, len(sized) * U))
+    for k, s in enumerate(sized):
+        Z[np.arange(len(unit)), :, k * U + unit] = moves[s.motion]
+    return Z, np.repeat([s.size for s in sized], U)
 
 
 def describe(s: SharedMotion, model: RobotModel) -> str:

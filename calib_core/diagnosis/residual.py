@@ -65,7 +65,8 @@ def _follows(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.
         entry = {"what": shared_motion.describe(together, model), "joints": [model.joint_names[j] for j in
                                                                        together.shared_joints],
                  "p_value": together.p_value, "share_pct": 100.0 * together.share, "shared_rms_mm": together.rms_mm,
-                 "family": "shared_by_targets", "effect": together}
+                 "family": "shared_by_targets", "effect": together,
+                 "effects": [s for s in shared if s.p_value < alpha / n_tests and s.size > 0]}
         out.insert(next((i for i, f in enumerate(out) if f["p_value"] > together.p_value), len(out)), entry)
     return out
 
@@ -100,28 +101,33 @@ def _shared_motion(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_re
     return shared_motion.shared_motion(chain, meas, r.reshape(-1, 3) * sigma[:, None], sigma, Q)
 
 
-POSE_NOISE_MAX_POSES = 1000
-"""The shared motion is weighted as noise of each pose up to this many poses: one nuisance column per pose, dense in
-the fit's Jacobian (1000 poses of two targets: 6000 rows x 1000 columns more)."""
+POSE_NOISE_MAX_COLUMNS = 1000
+"""The shared motions are weighted as noise of each pose up to this many nuisance columns (one per pose and motion,
+dense in the fit's Jacobian: 1000 poses of two targets, one motion, are 6000 rows x 1000 columns more)."""
 
 
-def _with_pose_noise(current: Calibration, fit: _Fitter, meas: Measurements, s: shared_motion.SharedMotion | None
+def _with_pose_noise(current: Calibration, fit: _Fitter, meas: Measurements, found: list[shared_motion.SharedMotion]
                      ) -> tuple[Calibration, str] | None:
-    """The motion the targets of a pose share, weighted as noise of each pose in the fit (generalised least squares,
-    identify's `pose_noise`): what no function of the joint values predicts then pulls the parameters less toward
-    the poses it happened to hit. The refit and a sentence saying so, if held-out poses find it better; else None
-    (Agile Justin: 0.03 mm held out, RESULTS 3.10)."""
-    if s is None or not s.size > 0 or len(np.unique(meas.pose_index())) > POSE_NOISE_MAX_POSES:
-        return None  # no size: nothing to weigh (and a prior std of 0)
+    """The motions the targets of a pose share (the significant ones, largest share first), weighted as noise of
+    each pose in the fit (generalised least squares, identify's `pose_noise`): what no function of the joint values
+    predicts then pulls the parameters less toward the poses it happened to hit. The refit and a sentence saying
+    so, if held-out poses find it better; else None (Agile Justin: 0.03 mm held out, RESULTS 3.10)."""
+    if not found:
+        return None
     chain = current.robot.chain(meas.joints, meas)[0]
-    trial = fit(current.effects, current.x_basis, pose_noise=shared_motion.pose_noise(chain, meas, s))
+    noise = shared_motion.pose_noise(chain, meas, found, POSE_NOISE_MAX_COLUMNS)
+    if noise is None:
+        return None  # no size: nothing to weigh (and a prior std of 0)
+    trial = fit(current.effects, current.x_basis, pose_noise=noise)
     p, _ = holdout_gain(current, trial)
     hb, ha = current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
     if not (_better(current, trial, HOLDOUT_ALPHA) and ha < hb):  # both: fewer outliers can raise the RMS shown
         return None
-    size = f"{1e3 * s.size:.2f} mrad" if s.unit == "rad" else f"{s.size:.2f} mm"
-    return trial, (f"the fit weights it as noise of each pose ({s.motion}, {size} RMS per pose; generalised least "
-                   f"squares): held-out {hb:.3f} -> {ha:.3f} mm, paired {_p(p)}")
+    used = found[:len(noise[1]) // (int(meas.pose_index().max()) + 1)]
+    sizes = ", ".join(f"{s.motion} {1e3 * s.size:.2f} mrad" if s.unit == "rad" else f"{s.motion} {s.size:.2f} mm"
+                      for s in used)
+    return trial, (f"the fit weights it as noise of each pose ({sizes} RMS per pose; generalised least squares): "
+                   f"held-out {hb:.3f} -> {ha:.3f} mm, paired {_p(p)}")
 
 
 def _drive_field(fit, chosen, x_ref, follows) -> tuple[Calibration, Probe] | None:
@@ -178,7 +184,7 @@ def _unexplained_finding(model, before, trial, floor, follows, basis, after: Cal
             "weighted_as_pose_noise": bool(weighted), "holdout_rms_before_mm": hb, "holdout_rms_after_mm": hf,
             "gain_pct": 100.0 * (hb - hf) / hb,
             "model_error_before_mm": mb, "model_error_after_mm": model_error_mm(after, floor),
-            "follows": [{k: v for k, v in f.items() if k != "effect"} for f in follows],
+            "follows": [{k: v for k, v in f.items() if k not in ("effect", "effects")} for f in follows],
             "evidence": (f"after the named causes the held-out error ({hb:.3f} mm) is still {hb / floor:.1f}x the "
                          f"noise floor ({floor:.3f} mm) and no named cause explains it; {what}; {fix}"),
             "parameters": []}

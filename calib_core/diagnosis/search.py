@@ -465,7 +465,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         follows = _follows(current, meas, sigma, x_ref, alpha, load_pool, fit, chosen)
         held_out_rms = np.sqrt(holdout_ms(current))
         noise_like = basis == "assumed" and held_out_rms / floor <= NOISE_LIKE
-        shared = next((f["effect"] for f in follows if f.get("family") == "shared_by_targets"), None)  # no correction
+        shared = next((f["effects"] for f in follows if f.get("family") == "shared_by_targets"), [])  # no correction
         trial = weighted = None  # can predict what the targets of a pose share
         if follows or not noise_like:
             fitted = [] if search.late("a smooth correction of what is left") else [
@@ -477,7 +477,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                     trial = (t, rf)
                     break
             weighted = _with_pose_noise(trial[0] if trial else current, fit, meas, shared)
-        if noise_like and (not follows or (not chosen and trial is None and weighted is None and shared is None)):
+        if noise_like and (not follows or (not chosen and trial is None and weighted is None and not shared)):
             new_floor = float(held_out_rms)
             after = f" left after {', '.join(e.label(model) for e in chosen)}" if chosen else ""
             what = ("follows nothing" + (" more" if chosen else "") + ": not time order, no joint, not the load, no "

@@ -158,14 +158,14 @@ def test_diagnosis_says_the_hands_move_together_only_when_they_do(tree, seed, mo
 
 
 def test_the_shared_motion_weighed_as_noise_of_each_pose_predicts_fresh_poses_better(tree, seed):
-    """A torso joint landing differently at each pose (2-4x the noise): the fit that weighs it as noise of each pose
-    (generalised least squares, identify's pose_noise) predicts fresh poses closer to the true geometry than ordinary
+    """A torso joint landing differently at each pose (2-4x the noise): the fit that weighs the shared motions found
+    as noise of each pose (generalised least squares, identify's pose_noise) predicts fresh poses closer to the true geometry than ordinary
     least squares, which lets the per-pose motion pull the parameters."""
     rng = np.random.default_rng(seed)
     meas, _, joint, x = _campaign(tree, rng, "torso", rng.uniform(2.0, 4.0))
     ols = identify(tree, meas, folds=0)
-    s = next(f for f in _shared_motion(ols, meas, ols.sigma_mm, ols.x) if f.p_value < 0.01)
-    gls = identify(tree, meas, folds=0, pose_noise=pose_noise(ols.robot.chain(meas.joints, meas)[0], meas, s))
+    s = [f for f in _shared_motion(ols, meas, ols.sigma_mm, ols.x) if f.p_value < 0.01]
+    gls = identify(tree, meas, folds=0, pose_noise=pose_noise(ols.robot.chain(meas.joints, meas)[0], meas, s, 1000))
     q = sample_uniform(tree, 200, rng)
     target = np.tile([0, 1], 200)
     fresh = Measurements(joints=np.repeat(q, 2, axis=0), points=np.zeros((400, 3)), target=target)
