@@ -28,7 +28,6 @@ import asyncio
 import importlib
 import itertools
 import logging
-import multiprocessing as mp
 import os
 import queue
 import threading
@@ -36,6 +35,7 @@ import time
 from concurrent.futures import Future
 from dataclasses import dataclass
 
+from . import processes
 from .problems import ProblemError
 
 log = logging.getLogger("service")
@@ -64,6 +64,7 @@ def _main(conn, parent: int, preload: str, nice: int = 0) -> None:
 
     run_below(nice)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when its lane processes end
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # (the fork server they come from ignores it)
     _watch_parent(parent)  # a server killed outright (SIGKILL) leaves no process behind
     importlib.import_module(preload)  # calib_core's imports, paid before a call's clock starts
     conn.send("ready")
@@ -86,9 +87,8 @@ class _Process:
     """One lane process and its pipe."""
 
     def __init__(self, preload: str, name: str, nice: int = 0):
-        ctx = mp.get_context("spawn")
+        ctx = processes.context()  # one core per call: OPENBLAS_NUM_THREADS=1
         self.conn, child = ctx.Pipe()
-        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # inherited by the spawned child: one core per call
         self.proc = ctx.Process(target=_main, args=(child, os.getpid(), preload, nice), daemon=True, name=name)
         self.proc.start()
         child.close()

@@ -143,11 +143,20 @@ def warm_up() -> None:
 
 
 def _watch_parent(parent_pid: int) -> None:
-    """Exit if the worker that started us dies (no orphans that keep spinning)."""
+    """Exit if the server process that started us dies (no orphans that keep spinning): it is gone, or our parent
+    (it, or its fork server, which ends with it) changed."""
+    born_of = os.getppid()
+
     def watch():
         while True:
             time.sleep(0.5)
-            if os.getppid() != parent_pid:
+            try:
+                os.kill(parent_pid, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except PermissionError:
+                pass  # alive, or its pid reused by another user's process: the parent check below decides
+            if os.getppid() != born_of:
                 os._exit(1)
 
     threading.Thread(target=watch, name="watch-parent", daemon=True).start()

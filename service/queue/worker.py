@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import wait as mp_wait
 
 from ..config import Settings
+from .. import processes
 from ..db import Database
 from . import notify, store
 from .runner import slot_main
@@ -78,7 +79,7 @@ class Worker:
         self.stop_event = threading.Event()
         self.ready_event = threading.Event()  # every slot has been warm once
         self.waker = notify.Waker()
-        self._ctx = mp.get_context("spawn")
+        self._ctx = processes.context()
         self.slots: list[Slot] = []
         self._respawn_at: dict[int, float] = {}  # slot index -> monotonic time (back-off after failed starts)
         self._start_failures: dict[int, int] = {}

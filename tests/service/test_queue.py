@@ -221,8 +221,9 @@ def running(s: Server, ids: list[str]):
 
 
 def job_processes(server_pid: int) -> set[int]:
-    """The server's job processes (multiprocessing spawn children; not its resource tracker)."""
-    out = set()
+    """The server's job and lane processes: the children of its fork server (service/processes.py; spawn's children
+    of the server itself where there is none), not the fork server or the resource tracker."""
+    children: dict[int, list[tuple[int, bytes]]] = {}
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
             continue
@@ -231,8 +232,10 @@ def job_processes(server_pid: int) -> set[int]:
             cmd = (d / "cmdline").read_bytes()
         except (OSError, IndexError, ValueError):
             continue
-        if ppid == server_pid and b"spawn_main" in cmd:
-            out.add(int(d.name))
+        children.setdefault(ppid, []).append((int(d.name), cmd))
+    out = {pid for pid, cmd in children.get(server_pid, []) if b"spawn_main" in cmd}
+    for fork_server in (pid for pid, cmd in children.get(server_pid, []) if b"forkserver" in cmd):
+        out |= {pid for pid, _ in children.get(fork_server, [])}
     return out
 
 

@@ -1,0 +1,30 @@
+"""Where the server's processes come from: a fork server that imported what they run once (calib_core, numpy,
+scipy, the lanes' modules), so a job or lane process costs a fork instead of a fresh interpreter's imports (spawn:
+about a second of CPU each, seven processes per server). Where a platform has no fork server, spawn as before."""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import threading
+
+PRELOAD = ["service.fork_server", "service.queue.runner", "service.measurements.service", "service.plans.service",
+           "service.calibrations.compute"]
+"""The fork server's signals (fork_server.py), then the modules the job processes and the lanes (lanes.py) import
+before their first call."""
+
+_lock = threading.Lock()
+_context = None
+
+
+def context():
+    """The multiprocessing context for every process the server starts (one fork server per server process)."""
+    global _context
+    with _lock:
+        if _context is None:
+            os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # read by numpy's import in the fork server
+            if "forkserver" in mp.get_all_start_methods():
+                _context = mp.get_context("forkserver")
+                _context.set_forkserver_preload(PRELOAD)
+            else:
+                _context = mp.get_context("spawn")
+        return _context
