@@ -313,22 +313,56 @@ def _minpack_lm(fun: Callable, jac: Callable, p0: np.ndarray, max_nfev: int) -> 
 
 def _switch(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta0: np.ndarray) -> np.ndarray:
     """Where a play switches: the load direction beta (on unit-RMS features Z) for which b/2 tanh(Z beta / t)
-    best fits the per-pose joint offsets e (weighted least squares), the transition t annealed to sharp."""
+    best fits the per-pose joint offsets e (weighted least squares), t sharp. For b > 0 that is the classifier of
+    sign(e) weighted by w |e| (sum w e s is what a flank s = +-1 gains); its convex surrogate, a weighted logistic
+    regression (Newton, from beta0), places it, and one fit of the tanh model finishes it."""
     sw = np.sqrt(weight / max(weight.mean(), 1e-300))
+    beta = _logistic(Z, np.sign(e), sw**2 * np.abs(e), beta0)
+    t = 0.05
+    s0 = np.tanh(Z @ beta / t)
+    b = 2.0 * float((sw**2 * s0 * e).sum() / max((sw**2 * s0 * s0).sum(), 1e-300))
+
+    def fun(p):
+        return sw * (e - 0.5 * p[0] * np.tanh(Z @ p[1:] / t))
+
+    def jac(p):
+        th = np.tanh(Z @ p[1:] / t)
+        return -sw[:, None] * np.column_stack([0.5 * th, (0.5 * p[0] / t) * (1.0 - th**2)[:, None] * Z])
+
+    p = _minpack_lm(fun, jac, np.r_[b, beta], 50)
+    return p[1:] * np.sign(p[0]) / max(float(np.sqrt(np.mean((Z @ p[1:]) ** 2))), 1e-300)
+
+
+LOGISTIC_RIDGE = 1e-3
+"""Ridge of the switch's logistic regression, per unit of the mean pose weight: separable poses have no finite
+optimum without it."""
+
+
+def _logistic(Z: np.ndarray, y: np.ndarray, c: np.ndarray, beta0: np.ndarray) -> np.ndarray:
+    """The weighted logistic regression of labels y (+-1) on Z (weights c, ridge LOGISTIC_RIDGE), by Newton from
+    beta0; its direction scaled to unit RMS of Z beta."""
+    c = c / max(float(c.mean()), 1e-300)
+    lam = LOGISTIC_RIDGE * len(y)
+
+    def loss(beta):
+        return float(c @ np.logaddexp(0.0, -y * (Z @ beta))) + 0.5 * lam * float(beta @ beta)
+
     beta = beta0 / max(float(np.sqrt(np.mean((Z @ beta0) ** 2))), 1e-300)
-    for t in (0.5, 0.15, 0.05):
-        s0 = np.tanh(Z @ beta / t)
-        b = 2.0 * float((sw**2 * s0 * e).sum() / max((sw**2 * s0 * s0).sum(), 1e-300))
-        def fun(p, t=t):
-            return sw * (e - 0.5 * p[0] * np.tanh(Z @ p[1:] / t))
-
-        def jac(p, t=t):
-            th = np.tanh(Z @ p[1:] / t)
-            return -sw[:, None] * np.column_stack([0.5 * th, (0.5 * p[0] / t) * (1.0 - th**2)[:, None] * Z])
-
-        p = _minpack_lm(fun, jac, np.r_[b, beta], 50)
-        beta = p[1:] * np.sign(p[0]) / max(float(np.sqrt(np.mean((Z @ p[1:]) ** 2))), 1e-300)
-    return beta
+    now = loss(beta)
+    for _ in range(30):
+        sig = special.expit(-y * (Z @ beta))  # d/dm log(1 + exp(-m)) = -sig
+        grad = -Z.T @ (c * y * sig) + lam * beta
+        H = (Z * (c * sig * (1.0 - sig))[:, None]).T @ Z + lam * np.eye(len(beta))
+        step = np.linalg.solve(H, grad)
+        for _ in range(30):  # halved until the loss does not rise (a start far out on the flat tails)
+            trial = loss(beta - step)
+            if trial <= now:
+                break
+            step = 0.5 * step
+        beta, now = beta - step, min(trial, now)
+        if float(np.abs(step).max()) < 1e-8 * max(float(np.abs(beta).max()), 1.0):
+            break
+    return beta / max(float(np.sqrt(np.mean((Z @ beta) ** 2))), 1e-300)
 
 
 def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray) -> np.ndarray:

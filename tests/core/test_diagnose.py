@@ -758,3 +758,35 @@ def test_a_sharp_plays_softness_is_one_answer_whatever_the_memory_layout(seed):
     # one answer to rounding (1e-8-1e-7 of its size on 2 of 600 draws), where the unridged fits differed by O(1)
     assert np.abs(c - f).max() <= 1e-5 * np.linalg.norm(c), (seed, c, f)
     assert np.mean(np.sign(Z @ c) == np.sign(Z @ truth)) > 0.9, seed  # the switch is the play's
+
+
+def test_a_plays_switch_is_the_weighted_logistic_optimum_then_the_tanh_fit(seed):
+    """The switch search's convex start (a weighted logistic regression of sign(offset) on the load features, Newton)
+    is scipy's optimum of the same objective (BFGS, a solver we did not write), and the switch it leads to separates
+    the poses as the drawn play does: offsets b/2 sign(load) + noise of 5-25 % of b, drawn features and switch."""
+    from scipy import optimize, special
+
+    from calib_core.diagnosis.plays import LOGISTIC_RIDGE, _logistic, _switch
+
+    rng = np.random.default_rng((seed, 22))
+    N, k = int(rng.integers(100, 300)), int(rng.integers(3, 15))
+    Z = np.linalg.qr(rng.normal(size=(N, k)))[0] * np.sqrt(N)
+    truth = rng.normal(size=k)
+    b = rng.uniform(1e-4, 1e-3)
+    e = 0.5 * b * np.sign(Z @ truth) + rng.normal(0, rng.uniform(0.05, 0.25) * b, N)
+    w = rng.uniform(0.5, 2.0, N)
+    c = w * np.abs(e) / np.mean(w * np.abs(e))
+    y = np.sign(e)
+
+    def loss(beta):
+        return float(np.sum(c * np.logaddexp(0.0, -y * (Z @ beta)))) + 0.5 * LOGISTIC_RIDGE * N * beta @ beta
+
+    def grad(beta):
+        return -Z.T @ (c * y * special.expit(-y * (Z @ beta))) + LOGISTIC_RIDGE * N * beta
+
+    ref = optimize.minimize(loss, np.zeros(k), jac=grad, method="BFGS", options={"gtol": 1e-10}).x
+    got = _logistic(Z, y, w * np.abs(e), rng.normal(size=k))
+    cos = float(got @ ref / np.linalg.norm(got) / np.linalg.norm(ref))
+    assert cos > 1 - 1e-6, (seed, cos)
+    beta = _switch(Z, e, w, rng.normal(size=k))
+    assert np.mean(np.sign(Z @ beta) == np.sign(Z @ truth)) > 0.9, seed
