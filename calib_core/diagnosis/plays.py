@@ -393,7 +393,7 @@ def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray
         return np.vstack([-sw[:, None] * np.column_stack([0.5 * th, 0.5 * p[0] * (1.0 - th**2)[:, None] * Z]),
                           ridge_rows])
 
-    p = _minpack_lm(fun, jac, np.r_[amplitude(Z @ start), start], 100)
+    p = _minpack_lm(fun, jac, np.r_[amplitude(Z @ start), start], 50)
     return p[1:] * np.sign(p[0])
 
 
