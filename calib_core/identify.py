@@ -311,9 +311,10 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
     `pose_noise` (Z (N, 3, U) mm per unit, tau (U,)): motions the targets of one pose share (the joints upstream of
     them landing a little differently at each visit) as noise of that pose, one nuisance value per pose and motion
     with prior std tau beside the parameters. That is generalised least squares with per-pose covariance
-    s^2 I + sum_k tau_k^2 z_k z_k' (a random effect). The nuisance values are left out of the solution: its x and cov are the model's block, and
-    its residual is measured minus the model's prediction. The block of the posterior covariance (solve.py) is
-    GLS's marginal (X' V^-1 X + L)^-1 exactly (a Schur complement: the nuisance values integrated out).
+    s^2 I + sum_k tau_k^2 z_k z_k' (a random effect). The nuisance values are left out of the solution: its x and
+    cov are the model's block, and its residual is measured minus the model's prediction. The block of the
+    posterior covariance (solve.py) is GLS's marginal (X' V^-1 X + L)^-1 exactly (a Schur complement: the nuisance
+    values integrated out).
 
     `start` (default: nominal) is where LM begins; the optimum does not depend on it beyond the convergence
     tolerance. Geometric fits (no bases) may take memoised `evals` of meas's poses; `covariance=False` skips the
