@@ -24,6 +24,7 @@ from .effects import Context, Effect
 from .identifiability import Identifiability, analyse, assess  # noqa: F401 (re-exported: select.py, benchmarks)
 from .fold_steps import fold_steps
 from .reuse import prepared, start_at
+from .shared_motion import PoseNoise
 from .io import DISTINCT_DECIMALS, Measurements
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, RobotModel
 from .solve import Solution, least_squares, lm_steps, solve_together
@@ -304,17 +305,14 @@ class ChainEvaluations:
 
 def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None,
          prior_scale: float = 1.0, *, evals: ChainEvaluations | None = None, covariance: bool = True,
-         damping: float = 1e-4, ftol: float = 1e-10, pose_noise: tuple[np.ndarray, np.ndarray] | None = None,
+         damping: float = 1e-4, ftol: float = 1e-10, pose_noise: PoseNoise | None = None,
          max_iter: int = 100) -> Solution:
     """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian.
 
-    `pose_noise` (Z (N, 3, U) mm per unit, tau (U,)): motions the targets of one pose share (the joints upstream of
-    them landing a little differently at each visit) as noise of that pose, one nuisance value per pose and motion
-    with prior std tau beside the parameters. That is generalised least squares with per-pose covariance
-    s^2 I + sum_k tau_k^2 z_k z_k' (a random effect). The nuisance values are left out of the solution: its x and
-    cov are the model's block, and its residual is measured minus the model's prediction. The block of the
-    posterior covariance (solve.py) is GLS's marginal (X' V^-1 X + L)^-1 exactly (a Schur complement: the nuisance
-    values integrated out).
+    `pose_noise` (shared_motion.PoseNoise): motions the targets of one pose share (the joints upstream of them
+    landing a little differently at each visit) as noise of that pose: generalised least squares with per-pose
+    covariance s^2 I + sum_k tau_k^2 z_k z_k' (a random effect), each pose's rows whitened by it. The solution's
+    residual is measured minus the model's prediction; its covariance is GLS's (X' V^-1 X + L)^-1.
 
     `start` (default: nominal) is where LM begins; the optimum does not depend on it beyond the convergence
     tolerance. Geometric fits (no bases) may take memoised `evals` of meas's poses; `covariance=False` skips the
@@ -323,12 +321,11 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
     q, y, labels = meas.joints, meas.points, meas.labels
     p_geo = len(idx)
     K_eff = 0 if bases is None else bases[0].shape[2]
-    Z = None if pose_noise is None else pose_noise[0]
 
     def residual_jac(xs):
         x = x0.copy()
         x[idx] = xs[:p_geo]
-        if not K_eff and Z is None:
+        if not K_eff:
             if evals is not None:
                 p, J = evals(x)
                 return y - p, J[:, :, idx]
@@ -338,24 +335,22 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
         Phi_q, Phi_p = bases
         chain = K.Chain(model, x, q + Phi_q @ theta, R0, labels)
         J_eff = (chain.joint_jacobian() @ Phi_q) + Phi_p
-        r, J = y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
-        if Z is None:
-            return r, J
-        return r - Z @ xs[p_geo + K_eff:], np.concatenate([J, Z], axis=2)
+        return y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
 
     nominal, prior = _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior, K_eff)
-    if Z is None:
-        return least_squares(residual_jac, nominal if start is None else start, sigma, loss=loss,
-                             covariance=covariance, damping=damping, ftol=ftol, max_iter=max_iter, **prior)
-    P, U = p_geo + K_eff, Z.shape[2]
-    std = prior.get("prior_std", np.full(P, np.inf))
-    prior = {"prior": np.r_[nominal, np.zeros(U)], "prior_std": np.r_[std, np.broadcast_to(pose_noise[1], U)]}
-    begin = np.r_[nominal if start is None else start[:P], np.zeros(U)]
-    sol = least_squares(residual_jac, begin, sigma, loss=loss, covariance=covariance, damping=damping, ftol=ftol,
-                        **prior)
-    return dataclasses.replace(sol, x=sol.x[:P], cov=sol.cov[:P, :P] if sol.cov is not None else None,
-                               residual=sol.residual + Z @ sol.x[P:],
-                               undetermined=None if sol.undetermined is None else sol.undetermined[:P])
+    begin = nominal if start is None else start
+    if pose_noise is None:
+        return least_squares(residual_jac, begin, sigma, loss=loss, covariance=covariance, damping=damping,
+                             ftol=ftol, max_iter=max_iter, **prior)
+    white = pose_noise.whitening(sigma)
+
+    def whitened(xs):
+        r, J = residual_jac(xs)
+        return white(r), white(J)
+
+    sol = least_squares(whitened, begin, sigma, loss=loss, covariance=covariance, damping=damping, ftol=ftol,
+                        max_iter=max_iter, **prior)
+    return dataclasses.replace(sol, residual=residual_jac(sol.x)[0])
 
 
 def _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior=None, K_eff: int = 0) -> tuple[np.ndarray, dict]:
@@ -447,7 +442,7 @@ def identify(
     x_ref: np.ndarray | None = None,
     prior_scale: float = 1.0,
     refold: Callable[[Calibration], Callable[[np.ndarray], tuple[Effect, ...]]] | None = None,
-    pose_noise: tuple[np.ndarray, np.ndarray] | None = None,
+    pose_noise: PoseNoise | None = None,
     start: Calibration | None = None,
     model_error_mm: float | None = None,
 ) -> Calibration:
@@ -460,7 +455,7 @@ def identify(
     multiplies the precision of the default prior toward nominal of the joint parameters (> 1: a stronger
     pull to nominal; with regularize=True only). `refold(cal)(train)` gives each fold the effects to refit on
     its training poses (train: (N,) bool), for effects whose form was itself read off this data (a play's switch
-    found on the residual): the held-out poses then have no say in it. `pose_noise` (Z, tau) weights motions the
+    found on the residual): the held-out poses then have no say in it. `pose_noise` (shared_motion.PoseNoise) weights motions the
     targets of one pose share as noise of that pose (generalised least squares; see _fit). `start`, a calibration
     of the same model on the same poses whose effects are all among `effects`, is where LM begins (its geometry and
     effect values; new effects at 0): the optimum does not depend on it beyond the convergence tolerance, but a
@@ -511,9 +506,6 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
             x_ref[idx] = geo.x
         bases = effect_bases(model, meas, effects, x_ref, R0)
     eprior = _effect_prior(model, effects)
-    if pose_noise is not None and not effects:  # the geometry alone: no effect columns, fitted beside the nuisance
-        n = meas.joints.shape[1]
-        bases = (np.zeros((meas.n_poses, n, 0)), np.zeros((meas.n_poses, 3, 0)))
     fit = dict(prior_scale=prior_scale, evals=evals, pose_noise=pose_noise)
     if model_error_mm is not None:  # the weighting given: one solve
         s_model, sigma0_measurement = float(model_error_mm), None
@@ -584,7 +576,7 @@ def cross_validate(model, meas, sigma, x0, R0, idx, loss, regularize, folds, bas
         train, test = assign != k, assign == k
         fold = bases if fold_bases is None else fold_bases(train)
         sub = (fold[0][train], fold[1][train])
-        noise = None if pose_noise is None else (pose_noise[0][train], pose_noise[1])
+        noise = None if pose_noise is None else pose_noise.subset(train)
         sol = _fit(model, meas.subset(train), sigma[train], x0, R0, idx, loss, regularize, sub, effect_prior,
                    start=start, prior_scale=prior_scale, covariance=False, pose_noise=noise, **warm)
         x = x0.copy()

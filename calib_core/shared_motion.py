@@ -114,24 +114,56 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
     return sorted(found, key=lambda s: -s.share)
 
 
-def pose_noise(chain: Chain, meas: Measurements, found: list[SharedMotion], max_columns: int
-               ) -> tuple[np.ndarray, np.ndarray] | None:
-    """(Z, tau) for identify's `pose_noise`: the motions found (largest share first) together as noise of each pose,
-    each with its own size (per-pose covariance sum_k tau_k^2 z_k z_k'). A motion that only resembles the true one
-    (the base shifting where a torso joint turns with its passive partner) weighs the wrong direction alone; together
-    they cover it. Z (N, 3, k U) mm per unit: each row's displacement in its pose's column (Measurements.pose_index,
-    U poses) of each motion; tau (k U,) their RMS per pose. As many motions as fit in max_columns (one at least);
-    None when none has a size."""
+@dataclass(frozen=True)
+class PoseNoise:
+    """Motions the targets of one pose share, as noise of that pose (identify's `pose_noise`): unit (N,) each row's
+    pose (Measurements.pose_index), Z (N, 3, k) its displacement per unit of each motion (mm), tau (k,) their RMS
+    per pose. A pose's rows have covariance diag(sigma^2) + sum_k tau_k^2 z_k z_k' (generalised least squares)."""
+
+    unit: np.ndarray
+    Z: np.ndarray
+    tau: np.ndarray
+
+    def subset(self, rows) -> "PoseNoise":
+        return PoseNoise(self.unit[rows], self.Z[rows], self.tau)
+
+    def whitening(self, sigma: np.ndarray):
+        """f(a) for a (N, 3, ...) in mm: sigma V_p^-1/2 (a / sigma) over each pose's rows, V_p = I + sum_k tau_k^2
+        z_k z_k' in the rows' weighted units: what a least-squares fit weighted by sigma then treats as independent
+        rows is the GLS fit (the same estimate as a nuisance value per pose and motion with prior std tau_k, without
+        its columns). Poses are grouped by their number of rows; each group is one batched eigendecomposition."""
+        order = np.argsort(self.unit, kind="stable")
+        groups = np.split(order, np.flatnonzero(np.diff(self.unit[order])) + 1)
+        blocks = []
+        for m in sorted({len(g) for g in groups}):
+            idx = np.array([g for g in groups if len(g) == m])  # (P, m)
+            s = sigma[idx]
+            z = (self.Z[idx] / s[:, :, None, None]).reshape(len(idx), 3 * m, -1) * self.tau  # (P, 3m, k)
+            lam, E = np.linalg.eigh(np.eye(3 * m) + z @ z.transpose(0, 2, 1))
+            blocks.append((idx, s, (E / np.sqrt(lam)[:, None, :]) @ E.transpose(0, 2, 1)))
+
+        def white(a: np.ndarray) -> np.ndarray:
+            out = np.empty_like(a)
+            for idx, s, W in blocks:
+                P, m = idx.shape
+                scale = s.reshape(P, m, *([1] * (a.ndim - 1)))
+                x = (a[idx] / scale).reshape(P, 3 * m, -1)
+                out[idx] = (W @ x).reshape(P, m, *a.shape[1:]) * scale
+            return out
+
+        return white
+
+
+def pose_noise(chain: Chain, meas: Measurements, found: list[SharedMotion]) -> PoseNoise | None:
+    """The motions found together as noise of each pose, each with its own size. A motion that only resembles the
+    true one (the base shifting where a torso joint turns with its passive partner) weighs the wrong direction
+    alone; together they cover it. None when none has a size."""
     moves = {what: v for what, _, v in motions(chain)}
-    unit = meas.pose_index()
-    U = int(unit.max()) + 1
-    sized = [s for s in found if s.size > 0][:max(max_columns // U, 1)]
+    sized = [s for s in found if s.size > 0]
     if not sized:
         return None
-    Z = np.zeros((len(unit), 3, len(sized) * U))
-    for k, s in enumerate(sized):
-        Z[np.arange(len(unit)), :, k * U + unit] = moves[s.motion]
-    return Z, np.repeat([s.size for s in sized], U)
+    return PoseNoise(meas.pose_index(), np.stack([moves[s.motion] for s in sized], axis=2),
+                     np.array([s.size for s in sized]))
 
 
 def describe(s: SharedMotion, model: RobotModel) -> str:

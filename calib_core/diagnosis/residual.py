@@ -101,11 +101,6 @@ def _shared_motion(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_re
     return shared_motion.shared_motion(chain, meas, r.reshape(-1, 3) * sigma[:, None], sigma, Q)
 
 
-POSE_NOISE_MAX_COLUMNS = 1000
-"""The shared motions are weighted as noise of each pose up to this many nuisance columns (one per pose and motion,
-dense in the fit's Jacobian: 1000 poses of two targets, one motion, are 6000 rows x 1000 columns more)."""
-
-
 def _with_pose_noise(current: Calibration, fit: _Fitter, meas: Measurements, found: list[shared_motion.SharedMotion]
                      ) -> tuple[Calibration, str] | None:
     """The motions the targets of a pose share (the significant ones, largest share first), weighted as noise of
@@ -115,7 +110,7 @@ def _with_pose_noise(current: Calibration, fit: _Fitter, meas: Measurements, fou
     if not found:
         return None
     chain = current.robot.chain(meas.joints, meas)[0]
-    noise = shared_motion.pose_noise(chain, meas, found, POSE_NOISE_MAX_COLUMNS)
+    noise = shared_motion.pose_noise(chain, meas, found)
     if noise is None:
         return None  # no size: nothing to weigh (and a prior std of 0)
     trial = fit(current.effects, current.x_basis, pose_noise=noise)
@@ -123,9 +118,8 @@ def _with_pose_noise(current: Calibration, fit: _Fitter, meas: Measurements, fou
     hb, ha = current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
     if not (_better(current, trial, HOLDOUT_ALPHA) and ha < hb):  # both: fewer outliers can raise the RMS shown
         return None
-    used = found[:len(noise[1]) // (int(meas.pose_index().max()) + 1)]
     sizes = ", ".join(f"{s.motion} {1e3 * s.size:.2f} mrad" if s.unit == "rad" else f"{s.motion} {s.size:.2f} mm"
-                      for s in used)
+                      for s in found if s.size > 0)
     return trial, (f"the fit weights it as noise of each pose ({sizes} RMS per pose; generalised least squares): "
                    f"held-out {hb:.3f} -> {ha:.3f} mm, paired {_p(p)}")
 

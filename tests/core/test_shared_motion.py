@@ -165,7 +165,7 @@ def test_the_shared_motion_weighed_as_noise_of_each_pose_predicts_fresh_poses_be
     meas, _, joint, x = _campaign(tree, rng, "torso", rng.uniform(2.0, 4.0))
     ols = identify(tree, meas, folds=0)
     s = [f for f in _shared_motion(ols, meas, ols.sigma_mm, ols.x) if f.p_value < 0.01]
-    gls = identify(tree, meas, folds=0, pose_noise=pose_noise(ols.robot.chain(meas.joints, meas)[0], meas, s, 1000))
+    gls = identify(tree, meas, folds=0, pose_noise=pose_noise(ols.robot.chain(meas.joints, meas)[0], meas, s))
     q = sample_uniform(tree, 200, rng)
     target = np.tile([0, 1], 200)
     fresh = Measurements(joints=np.repeat(q, 2, axis=0), points=np.zeros((400, 3)), target=target)
@@ -174,3 +174,27 @@ def test_the_shared_motion_weighed_as_noise_of_each_pose_predicts_fresh_poses_be
            for name, c in (("ols", ols), ("gls", gls))}
     assert len(gls.solution.x) == len(ols.solution.x) and gls.solution.residual.shape == meas.points.shape
     assert err["gls"] < err["ols"], (seed, joint, s, err)
+
+
+def test_whitening_a_pose_is_generalised_least_squares(seed):
+    """PoseNoise.whitening against the dense covariance built here: for drawn poses of 1-4 rows, motions, sizes and
+    sigmas, (W a / sigma)' (W b / sigma) = a' V^-1 b with V = diag(sigma^2) + sum_k tau_k^2 z_k z_k' over each pose's
+    rows (the rows of two poses independent): the fit on whitened rows is GLS."""
+    from calib_core.shared_motion import PoseNoise
+
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(1, 5, size=int(rng.integers(3, 9)))
+    unit = rng.permutation(np.repeat(np.arange(len(sizes)), sizes))  # rows of a pose need not be adjacent
+    N, k = len(unit), int(rng.integers(1, 5))
+    noise = PoseNoise(unit, rng.normal(size=(N, 3, k)), rng.uniform(0.1, 2.0, k))
+    sigma = rng.uniform(0.02, 0.2, N)
+    V = np.diag(np.repeat(sigma**2, 3))
+    for p in range(len(sizes)):
+        for j in range(k):
+            z = np.where((unit == p)[:, None], noise.Z[:, :, j], 0.0).ravel()
+            V += noise.tau[j] ** 2 * np.outer(z, z)
+    a, b = rng.normal(size=(N, 3)), rng.normal(size=(N, 3, 2))
+    white = noise.whitening(sigma)
+    got = (white(a) / sigma[:, None]).ravel() @ (white(b) / sigma[:, None, None]).reshape(3 * N, 2)
+    want = a.ravel() @ np.linalg.solve(V, b.reshape(3 * N, 2))
+    assert np.allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max()), (seed, got, want)
