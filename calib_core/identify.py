@@ -455,11 +455,12 @@ def identify(
     multiplies the precision of the default prior toward nominal of the joint parameters (> 1: a stronger
     pull to nominal; with regularize=True only). `refold(cal)(train)` gives each fold the effects to refit on
     its training poses (train: (N,) bool), for effects whose form was itself read off this data (a play's switch
-    found on the residual): the held-out poses then have no say in it. `pose_noise` (shared_motion.PoseNoise) weights motions the
-    targets of one pose share as noise of that pose (generalised least squares; see _fit). `start`, a calibration
-    of the same model on the same poses whose effects are all among `effects`, is where LM begins (its geometry and
-    effect values; new effects at 0): the optimum does not depend on it beyond the convergence tolerance, but a
-    search that adds one cause to a fitted model then takes a step or two instead of the whole way from nominal.
+    found on the residual): the held-out poses then have no say in it. `pose_noise` (shared_motion.PoseNoise)
+    weights motions the targets of one pose share as noise of that pose (generalised least squares; see _fit).
+    `start`, a calibration of the same model on the same poses whose effects are all among `effects`, is where LM
+    begins (its geometry and effect values; new effects at 0): the optimum does not depend on it beyond the
+    convergence tolerance, but a search that adds one cause to a fitted model then takes a step or two instead of
+    the whole way from nominal.
     `model_error_mm` given: the fit weighted by the noise plus that model error (mm per axis), one solve instead
     of two (the first, weighted by the noise alone, estimates the model error; on a large model error it converges
     slowly: Agile Justin's mass steps, 100 iterations each); for fits that keep one weighting (the mass steps).
