@@ -219,17 +219,21 @@ def _with_switch_doubt(cal: Calibration, meas: Measurements) -> None:
     plays = [i for i, e in enumerate(cal.effects) if isinstance(e, Backlash)]
     if not plays:
         return
-    draws = []
+    draws, masks = [], []
     if any(_identified_play(cal.effects[i]) for i in plays):
         refold, rng = _refold_plays(meas, cal), np.random.default_rng(0)  # same data, same answer
-        draws = [refold(rng.random(meas.n_poses) < 0.632) for _ in range(SWITCH_DRAWS)]
+        masks = [rng.random(meas.n_poses) < 0.632 for _ in range(SWITCH_DRAWS)]
+        draws = [refold(m) for m in masks]
     ctx = _basis_context(cal, meas)
     effects, readings = list(cal.effects), _play_readings(cal, meas, ctx)
     for i in plays:
-        e, (off, wt) = cal.effects[i], readings[i]
-        found = tuple(d[i].load_coef for d in draws if d[i] is not e and d[i].load_coef)
-        width = _switch_width(e, cal.effect_values[i][0], e.load(ctx), off, wt)
-        effects[i] = dataclasses.replace(e, switch_width=width, switch_draws=found)
+        e, (off, wt), b = cal.effects[i], readings[i], cal.effect_values[i][0]
+        again = [(d[i].load_coef, m) for d, m in zip(draws, masks) if d[i] is not e and d[i].load_coef]
+        width = _switch_width(e, b, e.load(ctx), off, wt)
+        if again:  # each switch found again judged on the poses it was not found on: a doubt not taken in-sample
+            held = [_switch_width(e, b, e.load(ctx, c)[~m], off[~m], wt[~m]) for c, m in again]
+            width = max(width, float(np.median(held)))
+        effects[i] = dataclasses.replace(e, switch_width=width, switch_draws=tuple(c for c, _ in again))
     cal.effects = tuple(effects)
 
 
