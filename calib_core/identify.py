@@ -303,6 +303,44 @@ class ChainEvaluations:
         return out
 
 
+class ThroughJoints:
+    """The effects' bases (Phi_q (N, n, K), Phi_p (N, 3, K)) applied by their structure: most columns move no joint
+    (a Cartesian effect) or one (a joint's own compliance), so the joint offsets Phi_q theta and the Jacobian
+    columns Jq Phi_q + Phi_p are gathered from those alone (Agile Justin: 96 % of Phi_q is zeros; the dense products
+    were a third of each LM evaluation). The same sums as the dense products, without their zero terms."""
+
+    def __init__(self, Phi_q: np.ndarray, Phi_p: np.ndarray):
+        N, n, K = Phi_q.shape
+        nz = np.abs(Phi_q).max(axis=0) > 0  # (n, K): the joints each column moves
+        per = nz.sum(0)
+        self.single = np.flatnonzero(per == 1)
+        self.row = nz[:, self.single].argmax(0)
+        self.w = np.ascontiguousarray(Phi_q[:, self.row, self.single].T)  # (Ks, N): each column's one joint
+        self.onehot = np.zeros((len(self.single), n))
+        self.onehot[np.arange(len(self.single)), self.row] = 1.0
+        self.multi = np.flatnonzero(per > 1)
+        self.rows = np.flatnonzero(nz[:, self.multi].any(1))
+        self.P = np.ascontiguousarray(Phi_q[:, self.rows][:, :, self.multi])  # (N, r, Km)
+        self.PpT = np.ascontiguousarray(Phi_p.transpose(2, 0, 1))  # (K, N, 3)
+        self.N, self.n = N, n
+
+    def shift(self, theta: np.ndarray) -> np.ndarray:
+        """Phi_q theta (N, n): the joint offsets the effects give."""
+        out = (self.w.T * theta[self.single]) @ self.onehot
+        if len(self.multi):
+            out[:, self.rows] += self.P @ theta[self.multi]
+        return out
+
+    def columns(self, Jq: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Jq Phi_q + Phi_p into out (K, N, 3), parameters first; Jq (N, 3, n) the chain's joint Jacobian."""
+        out[...] = self.PpT
+        JqT = Jq.transpose(2, 0, 1)  # (n, N, 3)
+        out[self.single] += JqT[self.row] * self.w[:, :, None]
+        if len(self.multi):
+            out[self.multi] += (Jq[:, :, self.rows] @ self.P).transpose(2, 0, 1)
+        return out
+
+
 def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None,
          prior_scale: float = 1.0, *, evals: ChainEvaluations | None = None, covariance: bool = True,
          damping: float = 1e-4, ftol: float = 1e-10, pose_noise: PoseNoise | None = None,
@@ -332,10 +370,13 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
             chain = K.Chain(model, x, q, R0, labels)
             return y - chain.p, chain.jacobian()[:, :, idx]
         theta = xs[p_geo:p_geo + K_eff]
-        Phi_q, Phi_p = bases
-        chain = K.Chain(model, x, q + Phi_q @ theta, R0, labels)
-        J_eff = (chain.joint_jacobian() @ Phi_q) + Phi_p
-        return y - chain.p - Phi_p @ theta, np.concatenate([chain.jacobian()[:, :, idx], J_eff], axis=2)
+        chain = K.Chain(model, x, q + through.shift(theta), R0, labels)
+        J = np.empty((p_geo + K_eff, len(q), 3))  # parameters first, as Chain.jacobian lays them out: no transposes
+        np.take(chain.jacobian().transpose(2, 0, 1), idx, axis=0, out=J[:p_geo])
+        through.columns(chain.joint_jacobian(), out=J[p_geo:])
+        return y - chain.p - bases[1] @ theta, J.transpose(1, 2, 0)
+
+    through = None if not K_eff else ThroughJoints(*bases)
 
     nominal, prior = _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior, K_eff)
     begin = nominal if start is None else start

@@ -144,12 +144,15 @@ def lm_steps(
 
     def normal_eq(x, r, J):
         rw = r * inv_s[:, None]
-        Jw = (J * sw).reshape(-1, p)
         rww = (rw * sqw).ravel()
+        if J.transpose(2, 0, 1).flags.c_contiguous:  # laid out parameters first (Chain.jacobian): no transpose copy
+            JwT = (J.transpose(2, 0, 1) * sw[:, :, 0]).reshape(p, -1)
+        else:
+            JwT = (J * sw).reshape(-1, p).T
         dx = x - prior
         cost = rww @ rww + (dx**2 * lam_diag).sum()
-        A = Jw.T @ Jw
-        g = Jw.T @ rww - lam_diag * dx
+        A = JwT @ JwT.T
+        g = JwT @ rww - lam_diag * dx
         return rw, A, g, cost
 
     w = np.ones(len(inv_s))

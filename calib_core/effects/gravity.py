@@ -38,11 +38,33 @@ degrees (Agile Justin: up to 26 deg) and the fit spends its freedom on poses it 
 LOAD_PRIOR_RAD; Justin's calibration folds prefer it to 0.01 and 0.02 rad (RESULTS 3.9)."""
 
 
+def _on_chain(chain, key: tuple, make) -> np.ndarray:
+    """make() once per chain and key, read-only: a chain's poses and geometry never change, and a screen or a fit
+    asks for the same joint's regressor once per candidate that loads it (Agile Justin: 1026 asks, 430 distinct)."""
+    memo = chain.__dict__.setdefault("_regressors", {})
+    if key not in memo:
+        out = make()
+        out.flags.writeable = False
+        memo[key] = out
+    return memo[key]
+
+
+def _gravity_key(g: np.ndarray | None) -> tuple | None:
+    return None if g is None else tuple(np.asarray(g, float).ravel())
+
+
 def gravity_regressor(chain, j: int, axis: np.ndarray | None = None, g: np.ndarray | None = None) -> np.ndarray:
     """Y_j (N, m): the gravity load on joint j per unit mass (column 4k) and first moment (4k+1..3) of
     every body k that joint j carries (k >= j in a serial chain); N*m per kg and per kg*mm (revolute), N per kg (prismatic). With `axis` (N, 3), the
     moment about that axis through the joint instead (a bending moment, for lateral compliance). `g` (3,) m/s^2 in
-    the base frame: an identified gravity instead of the model's."""
+    the base frame: an identified gravity instead of the model's. Read-only; about the joint's own axis, made once
+    per chain."""
+    if axis is None:
+        return _on_chain(chain, ("gravity", j, _gravity_key(g)), lambda: _gravity_regressor(chain, j, None, g))
+    return _gravity_regressor(chain, j, axis, g)
+
+
+def _gravity_regressor(chain, j: int, axis: np.ndarray | None, g: np.ndarray | None) -> np.ndarray:
     g = gravity_world(chain, g)
     carried = chain.model.descendants(j)
     z, o = (chain.z_axis[j] if axis is None else axis), chain.o_theta[j]
@@ -66,7 +88,11 @@ def drive_bodies(model, j: int) -> np.ndarray:
 def drive_regressor(chain, j: int, g: np.ndarray | None = None) -> np.ndarray:
     """gravity_regressor of the load on joint j's drive (N, m): its own, or where coupled rows follow the drive,
     the sum of theirs by their coefficients, on 4 columns per body of drive_bodies (a prismatic row's load has
-    only the mass column)."""
+    only the mass column). Read-only, made once per chain."""
+    return _on_chain(chain, ("drive", j, _gravity_key(g)), lambda: _drive_regressor(chain, j, g))
+
+
+def _drive_regressor(chain, j: int, g: np.ndarray | None) -> np.ndarray:
     model = chain.model
     if not len(model.followers(j)):
         return gravity_regressor(chain, j, None, g)
