@@ -9,7 +9,7 @@ held-out RMS on the 30 % (or on 100 fresh world poses), with their relative diff
 
 Run: .venv/bin/python -m benchmarks.bench_diagnosis_speed [--base REV]
      [--cases motoman motoman_order iiwa justin hilti w150 w2000]
-     [--jobs 2]
+     [--jobs 2] [--workers 2]
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ from calib_core.identify import evaluate
 from calib_core.io import parse_measurements
 from calib_core.model import parse_model
 
-case, root = sys.argv[1], sys.argv[2]
+case, root, workers = sys.argv[1], sys.argv[2], int(sys.argv[3])
 if case.startswith("w"):
     from calib_core.robots import spray7
     from calib_world import World
@@ -73,7 +73,7 @@ else:
     cal = np.isin(groups, ids[np.sort(perm[:k])])
     train, test = meas.subset(cal), meas.subset(~cal)
 t = time.perf_counter()
-d = diagnose(model, train)
+d = diagnose(model, train, **({"workers": workers} if workers > 1 else {}))
 wall = time.perf_counter() - t
 found = [f"{f['kind']}{'(' + f['follows'] + ')' if f['kind'] == 'correction' else ''} "
          f"{','.join(f.get('joints') or [])}".strip() for f in d.findings]
@@ -100,22 +100,23 @@ CACHE = Path("/tmp/calib-bench-cache")
 default, since the two sides are then no longer measured under the same load. The working tree is never cached."""
 
 
-def run(case: str, tree: Path, root: str, cache: bool = False) -> dict:
+def run(case: str, tree: Path, root: str, cache: bool = False, workers: int = 1) -> dict:
     sha = None if tree == ROOT or not cache else tree.name.rsplit("-", 1)[-1]
-    hit = CACHE / f"{sha}-{case}.json"
+    hit = CACHE / f"{sha}-{case}{'' if workers == 1 else f'-w{workers}'}.json"
     if sha and hit.exists():
         return json.loads(hit.read_text())
-    out = _run(case, tree, root)
+    out = _run(case, tree, root, workers)
     if sha and "error" not in out:
         CACHE.mkdir(exist_ok=True)
         hit.write_text(json.dumps(out))
     return out
 
 
-def _run(case: str, tree: Path, root: str) -> dict:
+def _run(case: str, tree: Path, root: str, workers: int = 1) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
                MKL_NUM_THREADS="1", CALIB_SHARED_DATASETS=root)
-    r = subprocess.run([sys.executable, "-c", CHILD, case, root], cwd=tree, env=env, capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-c", CHILD, case, root, str(workers)], cwd=tree, env=env, capture_output=True,
+                       text=True)
     if r.returncode != 0:
         return {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -127,19 +128,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--new", default="HEAD+", help="this code: HEAD+ (the working tree, default) or a revision")
     p.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
     p.add_argument("--jobs", type=int, default=2, help="cases run at once (processes)")
+    p.add_argument("--workers", type=int, default=1, help="this code's diagnosis processes (diagnose(workers=...), "
+                   "as an auto job runs it: CALIB_DIAGNOSIS_WORKERS); the base always runs in one")
     p.add_argument("--cache", action="store_true", help=f"reuse committed revisions' results from {CACHE}")
     p.add_argument("--root", default=os.environ.get("CALIB_SHARED_DATASETS", str(ROOT.parent / "shared" / "datasets")))
     args = p.parse_args(argv)
     base, new = tree_of(args.base), tree_of(args.new)
     t0 = time.perf_counter()
-    tasks = [(c, which, tree) for c in args.cases for which, tree in (("base", base), ("new", new))]
+    tasks = [(c, which, tree, w) for c in args.cases for which, tree, w in (("base", base, 1), ("new", new, args.workers))]
     on = lambda case, which: "motoman" if (case, which) == ("motoman_order", "base") else case  # noqa: E731
     with ThreadPoolExecutor(args.jobs) as pool:  # each task is its own process; threads only wait
-        done = list(pool.map(lambda t: (t[0], t[1], run(on(t[0], t[1]), t[2], args.root, args.cache)), tasks))
+        done = list(pool.map(lambda t: (t[0], t[1], run(on(t[0], t[1]), t[2], args.root, args.cache, t[3])), tasks))
     out: dict = {}
     for case, which, res in done:
         out.setdefault(case, {})[which] = res
-    print(f"## The diagnosis's run time: {args.new} against {args.base} ({args.jobs} at once, one BLAS thread each)\n")
+    print(f"## The diagnosis's run time: {args.new} ({args.workers} process{'es' if args.workers > 1 else ''}) against "
+          f"{args.base} (one) ({args.jobs} case(s) at once, one BLAS thread each)\n")
     print("| case | base (s) | new (s) | speed-up | findings base | findings new | held-out RMS base -> new (mm) | "
           "complete base / new |")
     print("|---|---|---|---|---|---|---|---|")

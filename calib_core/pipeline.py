@@ -16,14 +16,16 @@ MODES = ("geometric", "auto")
 
 
 def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
-              progress: Callable[[float, str], None] | None = None, deadline: float | None = None) -> dict:
+              progress: Callable[[float, str], None] | None = None, deadline: float | None = None,
+              workers: int = 1) -> dict:
     """Identify the model from the measurements; returns the answer dict plus `robot_state` for persistence.
 
     mode 'geometric' identifies the geometric model, its size (which parameters, how much prior) chosen on
     held-out poses so it is never worse than registering base and tool alone (`model_selection` says which
     and whether calibration helps); 'auto' also diagnoses the residual and extends the model with every
     cause it finds (the answer then carries the contract's `diagnosis` block). `deadline` (time.monotonic()):
-    past it the diagnosis fits no further model and answers with what it has confirmed (see diagnose).
+    past it the diagnosis fits no further model and answers with what it has confirmed (see diagnose). `workers`:
+    processes for the diagnosis's independent parts (the same answer as one).
     """
     if mode not in MODES:
         raise ValueError(f"unknown model {mode!r}; use one of {MODES}")
@@ -31,7 +33,7 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
     given, rows = model, meas
     model, meas = with_orientation(model, meas)
     if mode == "auto":
-        d = diagnose(model, meas, progress=report, deadline=deadline)
+        d = diagnose(model, meas, progress=report, deadline=deadline, workers=workers)
         cal = d.calibration
         out = cal.to_dict()
         out["diagnosis"] = d.to_dict()

@@ -13,6 +13,12 @@ def _int(name: str, default: int) -> int:
     return int(os.environ.get(name, default))
 
 
+def default_diagnosis_workers() -> int:
+    """CALIB_DIAGNOSIS_WORKERS' default: an auto job's diagnosis runs its independent parts (play searches, rival
+    fits, screening) in up to 2 processes, 1 on a one-core machine (calib_core/parallel.py)."""
+    return max(1, min(2, os.cpu_count() or 1))
+
+
 def default_processes() -> int:
     """A lane's processes sized to the machine: half its cores (the API process, the job processes and the other
     lanes need the rest), at least 1, at most 4 (service/lanes.py)."""
@@ -41,6 +47,8 @@ class Settings:
     test_job_delay_s: float = 0.0  # CALIB_TEST_JOB_DELAY_S: tests only, makes a job last longer (see queue/runner.py)
     job_timeout_s: float = 600.0  # CALIB_JOB_TIMEOUT_S: a job running longer (summed over attempts) fails, its process killed
     progress_seconds: float = 0.5  # CALIB_PROGRESS_SECONDS: a running job's progress row is written this often
+    diagnosis_workers: int = 1  # CALIB_DIAGNOSIS_WORKERS: processes of one auto job's diagnosis (default: 2, 1 on
+    # one core; its forked helpers share the job's niceness and die with its process)
     job_nice: int = 10  # CALIB_JOB_NICE: the job processes' niceness (0-19): identification is batch work, the API and
     # its lanes answer people (a red team's load with jobs running: /health p99 230 ms at 0)
     warm_pool: bool = True  # CALIB_WARM_POOL: start the job processes (imports, one tiny calibration) before serving
@@ -77,6 +85,7 @@ class Settings:
             heartbeat_seconds=_float("CALIB_HEARTBEAT_SECONDS", max(0.2, lease / 3)),
             poll_seconds=_float("CALIB_POLL_SECONDS", 0.5),
             job_nice=min(19, max(0, _int("CALIB_JOB_NICE", 10))),
+            diagnosis_workers=max(1, _int("CALIB_DIAGNOSIS_WORKERS", default_diagnosis_workers())),
             max_attempts=_int("CALIB_MAX_ATTEMPTS", 3),
             retry_backoff_seconds=_float("CALIB_RETRY_BACKOFF_SECONDS", 1.0),
             worker_concurrency=_int("CALIB_WORKER_CONCURRENCY", 2),

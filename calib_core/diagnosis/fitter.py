@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, TypeVar
 
 from ..identify import Calibration, identify
 from ..io import Measurements
 from ..model import RobotModel
 from .plays import _identified_play, _refold_plays
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 @dataclass(frozen=True)
@@ -23,7 +27,26 @@ class _Fitter:
     folds: int
     free: tuple[str, ...] | None
     prior_scale: float
+    workers: int = 1  # processes for the independent parts of the search (parallel.pmap)
     last: list = field(default_factory=list, compare=False, repr=False)
+
+    @property
+    def shared(self) -> tuple:
+        """What a fit made in a worker process (parallel.pmap) must come back holding as itself: the model."""
+        return (self.model, self.meas)
+
+    def apart(self, fn: Callable[[T], R]) -> Callable[[T], R]:
+        """fn for parallel.pmap: every call starts where the fit before the map ended, and leaves it there (fits in
+        worker processes cannot move it; in order they would, so one worker and several give the same answers)."""
+        before = list(self.last)
+
+        def run(item: T) -> R:
+            self.last[:] = before
+            try:
+                return fn(item)
+            finally:
+                self.last[:] = before
+        return run
 
     def __call__(self, effects=(), x_ref=None, folds: int | None = None, pose_noise=None,
                  model_error_mm: float | None = None, aside: bool = False) -> Calibration:

@@ -10,6 +10,7 @@ from .. import kinematics as K
 from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedLinkDeflection,
                        has_loads, on_joints)
 from ..effects.structure import STEP_WINDOW, at_gap, session_clock
+from ..parallel import pmap
 from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
 from .findings import STRONG_STD, _beyond, _finding, _who
 from .screening import Candidate, _thresholds, screen
@@ -28,8 +29,8 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
     share = LOOKALIKE if share is None else share
     rivals = [a for a in ranked if a is not c and a.log_p <= thresholds.get(id(a.effect), -np.inf)
               and a.explained >= share * c.explained]
-    for alt in rivals[:MAX_LOOKALIKES]:
-        tried.append((alt, fit(chosen + [alt.effect], x_ref)))
+    rivals = rivals[:MAX_LOOKALIKES]
+    tried += zip(rivals, pmap(fit.apart(lambda alt: fit(chosen + [alt.effect], x_ref)), rivals, fit.workers, fit.shared))
     tried = _simplest_first(tried, model)
     # a compliance of several joints that the simpler pick passed over, on its strong joints: springs on two joints
     # of five are as few parameters as a link's bending (only then: each is a fit of the whole model)
@@ -37,7 +38,8 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
     narrowed = [(Candidate(**{**a.__dict__, "effect": n, "label": n.label(model)}), n) for a, t in tried[1:]
                 if t.metrics()["holdout_rms_mm"] < h and (n := _on_strong_joints(a.effect, t, model)) is not None]
     if narrowed:
-        tried = _simplest_first(tried + [(a, fit(chosen + [n], x_ref)) for a, n in narrowed], model)
+        fits = pmap(fit.apart(lambda an: fit(chosen + [an[1]], x_ref)), narrowed, fit.workers, fit.shared)
+        tried = _simplest_first(tried + [(a, t) for (a, _), t in zip(narrowed, fits)], model)
     best = tried[0][1].metrics()["holdout_rms_mm"]
     same = lambda e: (e.kind, e.joints, e.harmonic)  # noqa: E731
     alike = [{**_who(a.effect, model), "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
@@ -122,17 +124,16 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref, rivals=()
     significantly better than it (paired test), the best on held-out poses; the other forms within 2 % of it,
     or not significantly worse, are look-alikes (a stiffening spring and a soft play both bend less and less
     as the load grows)."""
-    better = []
     ctx = Context(model, K.Chain(model, x_ref, fit.meas.joints, None, fit.meas.labels), fit.meas)
-    tried = []
-    for alt in _refinements(c.effect, load_pool, play_pool, ctx, rivals):
+    def refit(alt: Effect):
         try:  # a form of a cause already found replaces it (a play refined into the spring found before)
-            t = fit([e for e in chosen if _cause(e) != _cause(alt)] + [alt], x_ref)
+            return fit([e for e in chosen if _cause(e) != _cause(alt)] + [alt], x_ref)
         except ValueError:
-            continue
-        tried.append((alt, t))
-        if _better(trial, t, REFINE_ALPHA):
-            better.append((alt, t))
+            return None
+
+    forms = _refinements(c.effect, load_pool, play_pool, ctx, rivals)
+    tried = [(alt, t) for alt, t in zip(forms, pmap(fit.apart(refit), forms, fit.workers, fit.shared)) if t is not None]
+    better = [(alt, t) for alt, t in tried if _better(trial, t, REFINE_ALPHA)]
     best, t = min(better, key=lambda at: at[1].metrics()["holdout_rms_mm"]) if better else (c.effect, trial)
     h = t.metrics()["holdout_rms_mm"]
     alike = [{**_who(a, model), "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
@@ -187,7 +188,7 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
         rest = [e for e in pool if _cause(e) not in taken]
         if chosen[k - 1] not in rest:
             rest.append(chosen[k - 1])
-        ranked = screen(base, meas, sigma, rest, current.x)
+        ranked = screen(base, meas, sigma, rest, current.x, fit.workers)
         mine = next((c for c in ranked if c.effect == chosen[k - 1]), None)
         if mine is None:
             continue

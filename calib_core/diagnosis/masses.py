@@ -13,6 +13,7 @@ from ..effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJoin
                                lateral_axes, load_mix_for, mass_step, tilted)
 from ..identify import Calibration, widened
 from ..io import Measurements
+from ..parallel import pmap
 from ..kinematics import _cross
 from ..model import RobotModel
 from .evidence import REFINE_ALPHA, _p, holdout_gain
@@ -150,17 +151,22 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
         effects = [dataclasses.replace(e, masses=carried.masses, gravity=carried.gravity) if i in idx else e
                    for i, e in enumerate(chosen)]
         t = fit(effects, current.x, folds=0)
-    try:  # two starts: from a tilt that trades with the first moments the steps can stop in a local minimum; the
-        # second from the best of a ring of tilts (_tilt_scan)
-        paths = [_mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, False)]
+    def path(scan: bool) -> tuple:
+        """The steps from the carried mass data, or (scan) from the best of a ring of tilts (_tilt_scan)."""
+        if not scan:
+            return _mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, False)
         g_scan = _tilt_scan(t, effects, idx, meas)
         t_scan, effects_scan = t, effects
         if g_scan is not None:
             effects_scan = [dataclasses.replace(e, gravity=tuple(float(v) for v in g_scan)) if i in idx else e
                             for i, e in enumerate(effects)]
             t_scan = fit(effects_scan, t.x, folds=0, model_error_mm=t.model_error_mm)
-        paths.append(_mass_steps(chosen, idx, effects_scan, t_scan, phi, g if g_scan is None else g_scan,
-                                 phi_model, model, fit, True))
+        return _mass_steps(chosen, idx, effects_scan, t_scan, phi, g if g_scan is None else g_scan, phi_model,
+                           model, fit, True)
+
+    try:  # two starts (apart, fit.workers): from a tilt that trades with the first moments the steps can stop in a
+        # local minimum
+        paths = pmap(fit.apart(path), [False, True], fit.workers, fit.shared)
     except ValueError:
         return current
     _, effects, x = min(paths, key=lambda p: p[0])

@@ -15,6 +15,7 @@ from ..effects.gravity import carried_columns, drive_payload_load, drive_regress
 from ..effects.joint_effects import LOAD_DOUBT
 from ..identify import Calibration, identify
 from ..io import Measurements
+from ..parallel import pmap
 from ..solve import OUTLIER_U
 from .screening import _robust_sigma, _weighted_columns, _weighted_system
 
@@ -241,13 +242,14 @@ def _with_switch_doubt(cal: Calibration, meas: Measurements) -> None:
 
 
 def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray,
-                         joints: list[int], late: Callable[[], bool] = lambda: False) -> list[Backlash]:
+                         joints: list[int], late: Callable[[], bool] = lambda: False, workers: int = 1
+                         ) -> list[Backlash]:
     """Backlash whose switch follows the load identified from the data: per joint, a linear classifier of the
     sign of the residual along that joint's motion on the gravity regressor (started from the model's
     statics where there are masses). Its search is paid for in the F-test (`search_dof`), and each fold of the
     cross-validation finds the switch again on its own training poses (_refold_plays). Each pass refits the play
-    with everything else at the current linearisation (_with_play_refitted). Once `late()`, returns the plays found
-    so far."""
+    with everything else at the current linearisation (_with_play_refitted). The joints are searched apart
+    (`workers` processes, parallel.pmap); once `late()`, returns the plays of the joints before the one it cut."""
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
@@ -257,15 +259,17 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
     Jq = _joint_columns(cal, meas)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
     system = (r, Q, chain.joint_jacobian())
-    out = []
-    for j in joints:
+
+    def search(j: int) -> tuple[list[Backlash], bool]:
+        """Joint j's plays (a sharp one, then one whose softness is fitted) and whether `late()` cut it short."""
         feats = _LoadFeatures.of(ref, meas, j)
         if feats is None:
-            continue
+            return [], False
         col = Jq[:, :, j]
         e, w = _joint_offsets(col, residual)
         sharp = feats.beta(nominal[:, j] if nominal is not None else e)
-        for soft in (False, True):  # a sharp play, then one whose softness is fitted
+        out = []
+        for soft in (False, True):
             partial, play, beta = residual, None, sharp
             for _ in range(1 + PLAY_PASSES):
                 e, _ = _joint_offsets(col, partial)  # the residual as an offset of joint j, per pose
@@ -280,13 +284,21 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
                     break
                 if settled:
                     break
-                if late():  # the joint in progress is left out
-                    return out
+                if late():
+                    return out, True
                 # fit it, then find the switch again on the residual with the play put back (partial residual)
                 partial = _with_play_refitted(system, play, ref_ctx, sigma)
             if play is not None:
                 out.append(play)
                 sharp = beta if not soft else sharp
+        return out, False
+
+    out = []
+    for plays, cut in pmap(search, joints, workers):
+        if cut:
+            late()  # records what was left untested, here (a worker's record stays in the worker)
+            break
+        out += plays
     return out
 
 

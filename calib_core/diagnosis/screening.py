@@ -13,6 +13,7 @@ from ..effects import Context, Effect, SessionStep
 from ..effects.residual import PRIOR_STD_MM, ResidualField
 from ..identify import Calibration, effect_bases, pose_folds
 from ..io import Measurements
+from ..parallel import pmap
 from .evidence import paired_gain
 
 TIME_SHARE = 0.2
@@ -135,10 +136,14 @@ def _weighted_columns(e: Effect, ctx: Context, Jq: np.ndarray, sigma: np.ndarray
     return (C / sigma[:, None, None]).reshape(-1, k), b
 
 
-def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[Effect], x_ref: np.ndarray
-           ) -> list[Candidate]:
+SCREEN_APART = 16
+"""Pools of at least this many candidates are screened in several processes (a fork costs more than a few)."""
+
+
+def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[Effect], x_ref: np.ndarray,
+           workers: int = 1) -> list[Candidate]:
     """Score every candidate by the F-test of adding it to the current model (linearised at its solution), best
-    (lowest BIC) first."""
+    (lowest BIC) first; the candidates shared out to `workers` processes (parallel.pmap)."""
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
@@ -146,36 +151,39 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     Jq = chain.joint_jacobian()
     m, p = len(r), Q.shape[1]
     rss = float(r @ r)
-    out = []
-    for e in pool:
+    res_mm = r.reshape(-1, 3) * sigma[:, None]
+
+    def score(e: Effect) -> Candidate | None:
         Cw, b = _weighted_columns(e, ctx, Jq, sigma)
         norms = np.linalg.norm(Cw, axis=0)
         if not np.all(norms > 0):
-            continue
+            return None
         Cp = Cw / norms - Q @ (Q.T @ (Cw / norms))
         U, sv, _ = np.linalg.svd(Cp, full_matrices=False)
         k = int((sv > ABSORBED).sum())  # the directions the current model cannot absorb
         if k == 0:
-            continue
+            return None
         fit = U[:, :k] @ (U[:, :k].T @ r)
         drss = float(fit @ fit)
         k_test = k + int(getattr(e, "search_dof", 0))
         dof2 = m - p - k_test
         if dof2 <= 0:
-            continue
+            return None
         F = (drss / k_test) / max((rss - drss) / dof2, 1e-300)
         log_p = float(stats.f.logsf(F, k_test, dof2))
         disp = fit.reshape(-1, 3) * sigma[:, None]  # mm
         direction = disp / np.maximum(np.linalg.norm(disp, axis=1, keepdims=True), 1e-300)
-        res_mm = r.reshape(-1, 3) * sigma[:, None]
-        out.append(Candidate(
+        return Candidate(
             effect=e, label=e.label(model), p_value=float(np.exp(log_p)), log_p=log_p, F=float(F),
             explained=drss / rss, beyond_chance=drss / rss - k_test / (m - p),
             bic=m * np.log(max(rss - drss, 1e-300) / m) + k_test * np.log(m), dof=k_test, residual_dof=dof2,
             effect_rms_mm=float(np.sqrt(np.mean((disp**2).sum(1)))),
             regressor=b.regressor, regressor_label=b.regressor_label,
-            projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1)))
-    return sorted(out, key=lambda c: c.bic)
+            projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1))
+
+    # a worker's candidates come back holding the pool's own effects (the search tells them apart by identity)
+    scored = pmap(score, pool, workers if len(pool) >= SCREEN_APART else 1, shared=pool)
+    return sorted([c for c in scored if c is not None], key=lambda c: c.bic)
 
 
 def field_share(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> float:
@@ -219,8 +227,8 @@ def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
 
 
 def linear_holdout(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray, folds: int,
-                   refold: Callable[..., Callable[[np.ndarray], Effect] | None] = lambda *a: None
-                   ) -> Callable[[Effect], tuple[float, float]]:
+                   refold: Callable[..., Callable[[np.ndarray], Effect] | None] = lambda *a: None,
+                   workers: int = 1) -> Callable[[Effect], tuple[float, float]]:
     """At cal's linearisation, for a candidate effect: holdout_gain's (p-value, mean drop in mm^2) of the k-fold
     held-out distances (the folds identify uses) when it is added, the current model's columns free in every fold
     (exact least squares on the weighted system), over cal's inliers. It tracks the full refit's figures (the drop
@@ -239,12 +247,15 @@ def linear_holdout(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_re
     def held_out(A: np.ndarray, fold_columns: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
         if fold_columns is None:
             pred = fold_predictions(A, r, fold, folds)
-        else:  # the candidate's columns differ per fold
-            pred = np.empty_like(r)
-            for k in range(folds):
+        else:  # the candidate's columns differ per fold (found again on its training poses: apart, `workers`)
+            def one(k: int) -> np.ndarray:
                 te = fold == k
                 only = np.where(te, 0, 1)  # fold 0: this fold's rows, the only ones predicted
-                pred[te] = fold_predictions(np.hstack([A, fold_columns(~te[::3])]), r, only, 1)[te]
+                return fold_predictions(np.hstack([A, fold_columns(~te[::3])]), r, only, 1)[te]
+
+            pred = np.empty_like(r)
+            for k, part in enumerate(pmap(one, range(folds), workers)):
+                pred[fold == k] = part
         return (((r - pred).reshape(-1, 3) * sigma[:, None]) ** 2).sum(1)
 
     without = held_out(Q)

@@ -111,7 +111,7 @@ class _Search:
         model, meas, sigma, alpha, fit, x_ref = self.model, self.meas, self.sigma, self.alpha, self.fit, self.x_ref
         taken = {_cause(e) for e in self.chosen}
         pool = _on_carried_masses([e for e in self.pool if _cause(e) not in taken], self.chosen)
-        ranked = screen(self.current, meas, sigma, pool, x_ref)
+        ranked = screen(self.current, meas, sigma, pool, x_ref, fit.workers)
         field = None  # the smooth field's share, computed once a single-joint candidate needs it
         thresholds = _thresholds(pool, alpha)
         # a play whose switch follows the identified load, on the joints where a load-driven cause shows
@@ -150,7 +150,7 @@ class _Search:
                 continue
             excess = holdout_ms(self.current) - self.floor**2
             if linear is None and fit.folds > 1:
-                linear = linear_holdout(self.current, meas, sigma, x_ref, fit.folds, _refold_candidate)
+                linear = linear_holdout(self.current, meas, sigma, x_ref, fit.folds, _refold_candidate, fit.workers)
             if linear is not None:
                 p_lin, drop_lin = linear(c.effect)
                 need = MIN_EXCESS_FRACTION * max(excess, 0.0)
@@ -211,7 +211,8 @@ class _Search:
                 return plays
         before = self.untested
         plays = _identified_backlash(self.current, self.meas, self.sigma, self.x_ref, joints,
-                                     lambda: self.late("where a play would switch on the joints whose load shows"))
+                                     lambda: self.late("where a play would switch on the joints whose load shows"),
+                                     self.fit.workers)
         if self.untested == before:  # complete (a search the deadline cut short is not kept)
             self.play_memo[:] = [(self.current, self.x_ref, tuple(joints), plays)]
         return plays
@@ -403,14 +404,16 @@ class _Search:
 
 def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, repeatability_mm: float | None = None,
              loss: str | None = "auto", folds: int = 5, unexplained: bool = True,
-             progress: Callable[[float, str], None] | None = None, deadline: float | None = None) -> Diagnosis:
+             progress: Callable[[float, str], None] | None = None, deadline: float | None = None,
+             workers: int = 1) -> Diagnosis:
     """Geometric fit, then the greedy search for causes; returns the extended calibration and the findings.
     When mass data are identified under the compliances found, the search resumes on them once; then each finding
     is tested again on them, and the compliance of several joints in place of the single joints' own it covers.
 
     deadline: a time.monotonic() value after which the search fits no further model and the answer is finished
     with what it has confirmed so far (`Diagnosis.untested` says what was left; thousands of poses can take longer
-    than a job may run).
+    than a job may run). workers: processes for the search's independent parts (the play search per joint, rival
+    fits, the mass data's two starts; calib_core.parallel), the same answer as one.
 
     loss 'auto' fits with the Huber loss when a first robust fit names outliers (the final model's are listed), else
     with plain least squares; poses flagged in runs of consecutive measurements, none absurdly far off, are
@@ -428,7 +431,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
             notes.append(runs)
     selection = select_geometry(model, meas, loss=loss, folds=folds)
     geo = selection.calibration
-    fit = _Fitter(model, meas, loss, folds, selection.free, selection.prior_scale)
+    fit = _Fitter(model, meas, loss, folds, selection.free, selection.prior_scale, workers)
     if not selection.helps:
         notes.append(selection.note)
     floor, note, basis = noise_floor_mm(meas, sigma, repeatability_mm)

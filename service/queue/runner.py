@@ -66,10 +66,11 @@ def render_plots(result: dict) -> dict[str, bytes]:
 def run_job(job_id: str, mode: str, model_json: dict, raw: bytes, delay_s: float = 0.0,
             progress: Callable[[float, str], None] | None = None, poison: bool = False,
             with_plots: bool = True, instrument: str | None = None, limits: str = "reject",
-            budget_s: float | None = None) -> dict:
+            budget_s: float | None = None, workers: int = 1) -> dict:
     """`instrument` and `limits` are the measurement set's, as uploaded: the CSV is re-parsed as it was checked.
     `budget_s`: what is left of the job's time limit; the diagnosis stops searching after SEARCH_SHARE of it and
-    answers with what it has confirmed, so a large set ends with an answer that says so, not killed."""
+    answers with what it has confirmed, so a large set ends with an answer that says so, not killed. `workers`:
+    processes the diagnosis's independent parts run in (CALIB_DIAGNOSIS_WORKERS)."""
     deadline = None if budget_s is None else time.monotonic() + SEARCH_SHARE * budget_s
     import calib_core
     from calib_core.identify import identify
@@ -105,7 +106,8 @@ def run_job(job_id: str, mode: str, model_json: dict, raw: bytes, delay_s: float
         t0 = time.perf_counter()
         calibrate = getattr(calib_core, "calibrate", None)
         if calibrate is not None:
-            result = dict(calibrate(model, meas, mode, lambda f, m: report(0.1 + 0.85 * f, m), deadline=deadline))
+            result = dict(calibrate(model, meas, mode, lambda f, m: report(0.1 + 0.85 * f, m), deadline=deadline,
+                                    workers=workers))
             state = result.pop("robot_state", None)
             if state is None:
                 raise RuntimeError("calib_core.calibrate returned no robot_state")

@@ -261,7 +261,8 @@ class Worker:
             try:
                 slot.conn.send(("job", c.job_id, c.mode, c.model_json, c.raw, self.settings.test_job_delay_s,
                                 {"instrument": c.instrument, "limits": c.limits,
-                                 "budget_s": max(0.0, self.settings.job_timeout_s - c.run_seconds)}))
+                                 "budget_s": max(0.0, self.settings.job_timeout_s - c.run_seconds),
+                                 "workers": self.settings.diagnosis_workers}))
             except (OSError, ValueError):  # it died just now: give the job back untouched
                 slot.job = None
                 store.release(self.db, c.job_id, self.id)

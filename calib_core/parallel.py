@@ -1,0 +1,115 @@
+"""Independent parts of one computation in forked processes: a diagnosis's play searches per joint, its rival
+fits, its two mass-data paths. Each part is a function of what the parent holds when it forks (nothing is sent but
+the answer, pickled back through a pipe), so the answers are those of running the parts in order, which is what
+one worker does (and what a platform without fork does).
+
+Plain os.fork, not multiprocessing: a service job runs in a daemonic process, which multiprocessing forbids to
+have children. A child dies with its parent (Linux)."""
+from __future__ import annotations
+
+import ctypes
+import io
+import os
+import pickle
+import signal
+import traceback
+from typing import Callable, Sequence, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Sequence[object] = ()) -> list[R]:
+    """[fn(item) for item in items], the items dealt round-robin to `workers` processes (this one and
+    workers - 1 forked children). An exception in a part is raised here, as in the loop. The `shared` objects come
+    back as themselves, not as copies (a fit's model: the search checks a calibration's model by identity)."""
+    items = list(items)
+    k = min(max(int(workers), 1), len(items))
+    if k <= 1 or not hasattr(os, "fork"):
+        return [fn(item) for item in items]
+    children, parent = [], os.getpid()
+    for w in range(1, k):
+        read, write = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: its share, pickled into the pipe, then gone without the parent's clean-ups
+            os.close(read)
+            _die_with(parent)
+            code = 0
+            try:
+                try:
+                    out = [(i, True, fn(items[i])) for i in range(w, len(items), k)]
+                except BaseException as exc:  # noqa: BLE001 - carried to the parent, raised there
+                    out = [(-1, False, _portable(exc))]
+                with os.fdopen(write, "wb") as f:
+                    _Pickler(f, shared).dump(out)
+            except BaseException:  # noqa: BLE001 - the parent sees a child that gave no answer
+                code = 1
+            finally:
+                os._exit(code)
+        os.close(write)
+        children.append((pid, read))
+    results: dict[int, R] = {}
+    error: BaseException | None = None
+    try:
+        for i in range(0, len(items), k):
+            results[i] = fn(items[i])
+    except BaseException as exc:  # noqa: BLE001 - raised once the children are collected
+        error = exc
+    for pid, read in children:
+        with os.fdopen(read, "rb") as f:
+            data = f.read()
+        os.waitpid(pid, 0)
+        if error is not None:
+            continue
+        if not data:
+            error = RuntimeError("a worker process of pmap ended without an answer")
+            continue
+        for i, ok, value in _Unpickler(data, shared).load():
+            if not ok:
+                error = value
+                break
+            results[i] = value
+    if error is not None:
+        raise error
+    return [results[i] for i in range(len(items))]
+
+
+def _die_with(parent: int) -> None:
+    """Linux: this process is killed when its parent ends (a job process killed at its time limit takes its helpers
+    along); elsewhere it finishes its share and finds the pipe closed."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent ended before the call
+        os._exit(1)
+
+
+class _Pickler(pickle.Pickler):
+    """Pickles the shared objects as their ids: a forked child's objects from before the fork have the parent's."""
+
+    def __init__(self, f, shared: Sequence[object]):
+        super().__init__(f, protocol=pickle.HIGHEST_PROTOCOL)
+        self.ids = {id(o) for o in shared}
+
+    def persistent_id(self, obj):
+        return id(obj) if id(obj) in self.ids else None
+
+
+class _Unpickler(pickle.Unpickler):
+    def __init__(self, data: bytes, shared: Sequence[object]):
+        super().__init__(io.BytesIO(data))
+        self.by_id = {id(o): o for o in shared}
+
+    def persistent_load(self, pid):
+        return self.by_id[pid]
+
+
+def _portable(exc: BaseException) -> BaseException:
+    """exc if it pickles, else a RuntimeError carrying its traceback."""
+    try:
+        pickle.dumps(exc)
+        return exc
+    except Exception:  # noqa: BLE001 - any pickling failure
+        return RuntimeError("".join(traceback.format_exception(exc)))
