@@ -12,23 +12,28 @@ import io
 import os
 import pickle
 import signal
+import struct
 import traceback
-from typing import Callable, Sequence, TypeVar
+from typing import Callable, Iterator, Sequence, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
 
 
 def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Sequence[object] = ()) -> list[R]:
-    """[fn(item) for item in items], the items dealt round-robin to `workers` processes (this one and
-    workers - 1 forked children). An exception in a part is raised here, as in the loop. The `shared` objects come
-    back as themselves, not as copies (a fit's model: the search checks a calibration's model by identity)."""
+    """[fn(item) for item in items] in `workers` processes (this one and workers - 1 forked children), each taking
+    the next item left when it is free (the parts differ in cost: one joint's play search, another's). An exception
+    in a part is raised here, as in the loop. The `shared` objects come back as themselves, not as copies (a fit's
+    model: the search checks a calibration's model by identity)."""
     items = list(items)
     k = min(max(int(workers), 1), len(items))
     if k <= 1 or not hasattr(os, "fork"):
         return [fn(item) for item in items]
+    queue_r, queue_w = os.pipe()  # the items' indices, 4 bytes each: a read of 4 bytes takes one, atomically
+    os.write(queue_w, struct.pack(f"<{len(items)}i", *range(len(items))))  # 4 x len(items) bytes: within the
+    os.close(queue_w)  # pipe's buffer for any pool the search makes (64 KiB: 16384 items)
     children, parent = [], os.getpid()
-    for w in range(1, k):
+    for _ in range(1, k):
         read, write = os.pipe()
         pid = os.fork()
         if pid == 0:  # the child: its share, pickled into the pipe, then gone without the parent's clean-ups
@@ -37,7 +42,7 @@ def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Seq
             code = 0
             try:
                 try:
-                    out = [(i, True, fn(items[i])) for i in range(w, len(items), k)]
+                    out = [(i, True, fn(items[i])) for i in _taken(queue_r)]
                 except BaseException as exc:  # noqa: BLE001 - carried to the parent, raised there
                     out = [(-1, False, _portable(exc))]
                 with os.fdopen(write, "wb") as f:
@@ -51,10 +56,11 @@ def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Seq
     results: dict[int, R] = {}
     error: BaseException | None = None
     try:
-        for i in range(0, len(items), k):
+        for i in _taken(queue_r):
             results[i] = fn(items[i])
     except BaseException as exc:  # noqa: BLE001 - raised once the children are collected
         error = exc
+    os.close(queue_r)
     for pid, read in children:
         with os.fdopen(read, "rb") as f:
             data = f.read()
@@ -72,6 +78,12 @@ def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Seq
     if error is not None:
         raise error
     return [results[i] for i in range(len(items))]
+
+
+def _taken(queue: int) -> Iterator[int]:
+    """The indices this process takes from the queue pipe, one at a time, until it is empty."""
+    while len(b := os.read(queue, 4)) == 4:
+        yield struct.unpack("<i", b)[0]
 
 
 def _die_with(parent: int) -> None:

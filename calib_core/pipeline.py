@@ -40,7 +40,7 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
         _mark_plannable(given, rows, cal.robot.effects, out["diagnosis"].get("findings") or [])
     else:
         report(0.05, "choosing the geometric model on held-out poses")
-        selection = select_geometry(model, meas)
+        selection = select_geometry(model, meas, workers=workers)
         cal = selection.calibration
         out = cal.to_dict()
         out["model_selection"] = selection.to_dict()

@@ -35,6 +35,7 @@ from .identify import (DISTINCT_DECIMALS, Calibration, ChainEvaluations, Folds, 
                        held_out, identify, measured_targets, pose_folds, prealign)
 from .io import Measurements
 from .model import RobotModel
+from .parallel import pmap
 
 PRIOR_SCALES = (1e4, 1e2, 1.0)
 """Prior strengths tried for the richer candidates, strongest (simplest) first."""
@@ -134,8 +135,9 @@ class _Shared:
 
 
 def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None = None,
-                    folds: int = 5) -> GeometrySelection:
-    """Pick the geometric model's size (and prior strength) by k-fold held-out RMS with the one-SE rule.
+                    folds: int = 5, workers: int = 1) -> GeometrySelection:
+    """Pick the geometric model's size (and prior strength) by k-fold held-out RMS with the one-SE rule; the
+    candidates' folds are solved in `workers` processes (the same answer: each fold's fit takes its own steps).
 
     Raises ValueError when the data cannot be cross-validated (fewer than 4 poses) or even registration
     cannot be identified."""
@@ -161,9 +163,13 @@ def select_geometry(model: RobotModel, meas: Measurements, *, loss: str | None =
         cals[label] = cal
         if cv is not None:
             cvs.append((cal, cv))
-    if cvs:  # every candidate's folds solved together
-        for (cal, _), d in zip(cvs, held_out(model, meas, shared.x0, shared.evals, [cv for _, cv in cvs], k)):
-            cal.holdout_residual_mm = d
+    if cvs:  # every candidate's folds solved together (in each process, its share of the candidates)
+        parts = [cvs[w::workers] for w in range(min(workers, len(cvs)))]
+        solved = pmap(lambda part: held_out(model, meas, shared.x0, shared.evals, [cv for _, cv in part], k), parts,
+                      workers)
+        for part, distances in zip(parts, solved):
+            for (cal, _), d in zip(part, distances):
+                cal.holdout_residual_mm = d
     keep = _not_outliers(list(cals.values()), meas.n_poses)
     assign = pose_folds(meas, k)
     for row in table:

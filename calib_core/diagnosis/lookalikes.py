@@ -170,10 +170,14 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
     every other finding in the model; swap it for a better one, or name the ones it cannot beat. A form swapped in
     gets its richer forms tried (_refine), as a form the search accepted does. A finding the others explain goes to
     `rejected`, with the figures."""
-    k = 0
+    k, without = 0, {}  # the model without finding i, each from the same start (fit.apart), while nothing changed
     while k < len(chosen):
+        if k not in without:  # with several processes, every finding's at once (one is wasted if one goes)
+            rest = list(range(k, len(chosen) if fit.workers > 1 else k + 1))
+            without = dict(zip(rest, pmap(fit.apart(lambda i: fit(chosen[:i] + chosen[i + 1:], current.x)), rest,
+                                          fit.workers, fit.shared)))
         others = chosen[:k] + chosen[k + 1:]
-        base = fit(others, current.x)
+        base = without[k]
         if not _better(base, current, HOLDOUT_ALPHA):  # the others explain what it did: it goes
             p, _ = holdout_gain(base, current)
             hb, hc = base.metrics()["holdout_rms_mm"], current.metrics()["holdout_rms_mm"]
@@ -181,7 +185,7 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
                              f"model held-out poses no longer confirm it ({hb:.3f} mm without it, {hc:.3f} mm with "
                              f"it, paired p = {p:.1e})"})
             del chosen[k], findings[k]
-            current = base
+            current, without = base, {}
             continue
         k += 1
         taken = {_cause(e) for e in others}  # one form per cause (_cause)
@@ -197,7 +201,7 @@ def _revisit(findings, chosen, current, pool, model, meas, sigma, alpha, fit, fl
                                           share=0.5)
         if c is not mine:
             chosen[k - 1] = c.effect
-            current = fit(chosen, current.x)
+            current, without = fit(chosen, current.x), {}
             # never refined when the search took the spread form instead (a stiffening spring on J3 found as the
             # compliance of J3-J7, then J3's linear one here: 0.83x the noise off the truth, 0.30x stiffening)
             c, _, forms = _refine(c, current, others, load_pool, {}, model, fit, current.x)

@@ -429,7 +429,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         loss = "huber" if len(first.solution.outliers) and not runs and not _play_not_outliers(first, meas) else None
         if runs:
             notes.append(runs)
-    selection = select_geometry(model, meas, loss=loss, folds=folds)
+    selection = select_geometry(model, meas, loss=loss, folds=folds, workers=workers)
     geo = selection.calibration
     fit = _Fitter(model, meas, loss, folds, selection.free, selection.prior_scale, workers)
     if not selection.helps:

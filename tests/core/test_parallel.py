@@ -1,0 +1,125 @@
+"""calib_core.parallel.pmap: the loop's answers from forked processes, errors and shared objects carried back, helpers
+that die with their parent; and a diagnosis in two processes giving the answer of one."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from calib_core.diagnosis import diagnose
+from calib_core.model import parse_model
+from calib_core.parallel import pmap
+from calib_core.robots import spray7
+from calib_world import World
+from calib_world.scenarios import hide
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3, 5])
+@pytest.mark.parametrize("n", [0, 1, 2, 7])
+def test_pmap_gives_the_loop_in_order(workers, n):
+    items = list(np.random.default_rng(n).normal(size=n))
+    assert pmap(lambda v: v * 2.0, items, workers) == [v * 2.0 for v in items]
+
+
+def _slow(fn, s: float = 0.1):
+    """fn after a pause: every process then takes a share of a few items (each takes the next one free)."""
+    def part(item):
+        time.sleep(s)
+        return fn(item)
+    return part
+
+
+def test_pmap_runs_parts_in_other_processes():
+    pids = pmap(_slow(lambda _: os.getpid()), range(10), 2)
+    assert os.getpid() in pids and len(set(pids)) == 2
+
+
+@pytest.mark.parametrize("where", ["parent", "child"])
+def test_a_part_that_raises_raises_in_the_caller(where):
+    parent = os.getpid()
+
+    def part(i):
+        if (os.getpid() == parent) == (where == "parent"):
+            raise ValueError(f"part {i} cannot be fitted")
+        return i
+
+    with pytest.raises(ValueError, match="part .* cannot be fitted"):
+        pmap(_slow(part), range(10), 2)
+
+    class Odd(Exception):
+        def __reduce__(self):
+            raise TypeError("not picklable")
+
+    def odd(i):
+        if os.getpid() != parent:
+            raise Odd("odd")
+        return i
+
+    with pytest.raises(RuntimeError, match="Odd"):
+        pmap(_slow(odd), range(10), 2)
+
+
+def test_shared_objects_come_back_as_themselves():
+    model = parse_model(spray7())
+    out = pmap(_slow(lambda i: (model, os.getpid())), range(10), 2, shared=(model,))
+    assert all(m is model for m, _ in out) and any(pid != os.getpid() for _, pid in out)
+    copies = pmap(_slow(lambda i: (model, os.getpid())), range(10), 2)
+    assert {m is model for m, pid in copies} == {True, False}
+    assert all(m.joint_names == model.joint_names for m, _ in copies)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_helper_dies_with_its_parent(tmp_path):
+    pid_file = tmp_path / "child.pid"
+    script = textwrap.dedent(f"""
+        import os, time
+        from calib_core.parallel import pmap
+        def part(i):
+            if i == 1:
+                open({str(pid_file)!r}, "w").write(str(os.getpid()))
+            time.sleep(60)
+        pmap(part, range(2), 2)
+    """)
+    parent = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        t_end = time.monotonic() + 30
+        while not (pid_file.exists() and pid_file.read_text()) and time.monotonic() < t_end:
+            time.sleep(0.05)
+        child = int(pid_file.read_text())
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait(10)
+        t_end = time.monotonic() + 5
+        while time.monotonic() < t_end and _alive(child):
+            time.sleep(0.05)
+        assert not _alive(child)
+    finally:
+        parent.kill()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"  # a zombie is gone, its parent just has not reaped it
+    except FileNotFoundError:
+        return False
+
+
+def test_a_diagnosis_in_two_processes_gives_the_answer_of_one():
+    """Drawn: the seed, a play (its search runs per joint apart) or a spring (rival fits apart), its size."""
+    seed = int(np.random.default_rng().integers(2**31))
+    rng = np.random.default_rng(seed)
+    model = parse_model(spray7())
+    world = World(model, seed)
+    info = hide(world, str(rng.choice(["hard_backlash", "joint_spring"])), float(rng.uniform(2.0, 5.0)), rng)
+    meas = world.measure(info["q"], payload_kg=info["payload_kg"], temperature=info["temperature"])
+    one, two = diagnose(model, meas, workers=1), diagnose(model, meas, workers=2)
+    assert [(f["kind"], f["joints"]) for f in two.findings] == [(f["kind"], f["joints"]) for f in one.findings], seed
+    assert np.array_equal(two.calibration.x, one.calibration.x), seed
+    assert np.array_equal(two.calibration.holdout_residual_mm, one.calibration.holdout_residual_mm), seed
+    assert two.explanation == one.explanation, seed
