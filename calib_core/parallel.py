@@ -23,7 +23,7 @@ R = TypeVar("R")
 def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Sequence[object] = ()) -> list[R]:
     """[fn(item) for item in items] in `workers` processes (this one and workers - 1 forked children), each taking
     the next item left when it is free (the parts differ in cost: one joint's play search, another's). An exception
-    in a part is raised here, as in the loop. The `shared` objects come back as themselves, not as copies (a fit's
+    in a part is raised here, as in the loop; the parts of a child that died without answering are done here. The `shared` objects come back as themselves, not as copies (a fit's
     model: the search checks a calibration's model by identity)."""
     items = list(items)
     k = min(max(int(workers), 1), len(items))
@@ -67,8 +67,7 @@ def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Seq
         os.waitpid(pid, 0)
         if error is not None:
             continue
-        if not data:
-            error = RuntimeError("a worker process of pmap ended without an answer")
+        if not data:  # killed (out of memory, a signal): its parts are done again below
             continue
         for i, ok, value in _Unpickler(data, shared).load():
             if not ok:
@@ -77,6 +76,9 @@ def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Seq
             results[i] = value
     if error is not None:
         raise error
+    for i in range(len(items)):  # what a helper that died had taken: a dead helper costs time, not the answer
+        if i not in results:
+            results[i] = fn(items[i])
     return [results[i] for i in range(len(items))]
 
 

@@ -65,6 +65,17 @@ def test_a_part_that_raises_raises_in_the_caller(where):
         pmap(_slow(odd), range(10), 2)
 
 
+def test_the_parts_of_a_helper_that_died_are_done_again():
+    parent = os.getpid()
+
+    def part(i):
+        if os.getpid() != parent:
+            os.kill(os.getpid(), signal.SIGKILL)  # out of memory, say
+        return i * i
+
+    assert pmap(_slow(part), range(10), 2) == [i * i for i in range(10)]
+
+
 def test_shared_objects_come_back_as_themselves():
     model = parse_model(spray7())
     out = pmap(_slow(lambda i: (model, os.getpid())), range(10), 2, shared=(model,))
