@@ -42,7 +42,6 @@ def main(argv=None):
     ap.add_argument("--settled", type=float, default=P.PLAY_SETTLED)
     args = ap.parse_args(argv)
     model = parse_model(spray7())
-    stalled = P.PLAY_STALLED
     fits, ratios = {args.settled: 0, -1.0: 0}, []
     for seed in range(1, args.seeds + 1):
         for kind in ("hard_backlash", "soft_backlash"):
@@ -53,7 +52,6 @@ def main(argv=None):
             found = []
             for settled in fits:  # the threshold, then every pass (never settled)
                 P.PLAY_SETTLED = settled
-                P.PLAY_STALLED = stalled if settled == args.settled else P.PLAY_PASSES + 1  # every pass: neither
                 n, refit = [0], P._with_play_refitted
 
                 def counted(*a, **k):

@@ -27,11 +27,6 @@ PLAY_SETTLED = 0.002
 fitting it again would give back nearly the same fit, so the passes stop there. On 80 drawn spray7 plays it fits
 46 % fewer models than every pass, and the plays found fit the poses within 0.2 % of theirs (0.01 saved 56 % but
 was 5 % worse on one draw: the soft play's search starts from the sharp one's switch)."""
-PLAY_STALLED = 2
-PLAY_GAIN = 0.01
-"""A switch that does not settle swings from pass to pass (Agile Justin's torso: the share a play explains went
-0.118, 0.119, 0.123, 0.120, 0.118, ...): after PLAY_STALLED passes that do not explain PLAY_GAIN more than the best,
-the search stops and keeps the best pass."""
 SATURATES = 1.5
 """A play with fitted softness must reach tanh(1.5) = 0.9 of its flanks somewhere, else it is a spring."""
 SHARPEST = 20.0
@@ -275,7 +270,7 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
         sharp = feats.beta(nominal[:, j] if nominal is not None else e)
         out = []
         for soft in (False, True):
-            partial, play, beta, best, stalled = residual, None, sharp, None, 0
+            partial, play, beta = residual, None, sharp
             for _ in range(1 + PLAY_PASSES):
                 e, _ = _joint_offsets(col, partial)  # the residual as an offset of joint j, per pose
                 beta = _softness(feats.Z, e, w / sigma**2, beta) if soft else _switch(feats.Z, e, w / sigma**2, beta)
@@ -292,13 +287,8 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
                 if late():
                     return out, True
                 # fit it, then find the switch again on the residual with the play put back (partial residual)
-                partial, explained = _with_play_refitted(system, play, ref_ctx, sigma)
-                if best is None or explained > (1.0 + PLAY_GAIN) * best[0]:
-                    best, stalled = (explained, play, beta), 0
-                elif (stalled := stalled + 1) >= PLAY_STALLED:
-                    break
-            if play is not None and best is not None and best[1] is not play and not settled:
-                _, play, beta = best  # the pass that fitted best, where the switch swung without settling
+                partial = _with_play_refitted(system, play, ref_ctx, sigma)
+            if play is not None:
                 out.append(play)
                 sharp = beta if not soft else sharp
         return out, False
@@ -312,19 +302,19 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
     return out
 
 
-def _with_play_refitted(system: tuple, play: Backlash, ctx: Context, sigma: np.ndarray) -> tuple[np.ndarray, float]:
+def _with_play_refitted(system: tuple, play: Backlash, ctx: Context, sigma: np.ndarray) -> np.ndarray:
     """The residual (N, 3) mm with `play` fitted jointly with everything the current model fits, and the play's own
     part put back: at the current model's linearisation (one Gauss-Newton step on its weighted system (r, Q, joint
     Jacobian), Q an orthonormal basis of its columns). With c the play's weighted column and c' its part outside Q,
     the joint fit gives the play b = c'.r / c'.c' and leaves r - QQ'r - b c'; its part b c put back, r - QQ'r + b QQ'c.
     A full refit of every parameter per pass cost the play search hundreds of fits (Agile Justin: 620 s of 990)
-    for the same switch. Also returns what the play explains of the weighted sum of squares, b c'.r."""
+    for the same switch."""
     r, Q, Jq = system
     c = _weighted_columns(play, ctx, Jq, sigma)[0][:, 0]
     inside = Q @ (Q.T @ c)
     outside = c - inside
     b = float(outside @ r) / max(float(outside @ outside), 1e-300)
-    return (r - Q @ (Q.T @ r) + b * inside).reshape(-1, 3) * sigma[:, None], b * float(outside @ r)
+    return (r - Q @ (Q.T @ r) + b * inside).reshape(-1, 3) * sigma[:, None]
 
 
 def _flank_moved(a: Backlash, b: Backlash, ctx: Context) -> float:

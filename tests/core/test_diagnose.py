@@ -509,8 +509,7 @@ def test_the_play_search_stops_where_its_switch_has_settled(kind, seed, monkeypa
     monkeypatch.setattr(plays_module, "_with_play_refitted", counted)
     settled = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j])
     n_settled = len(calls)
-    monkeypatch.setattr(plays_module, "PLAY_SETTLED", -1.0)  # never settled nor stalled: every pass
-    monkeypatch.setattr(plays_module, "PLAY_STALLED", plays_module.PLAY_PASSES + 1)
+    monkeypatch.setattr(plays_module, "PLAY_SETTLED", -1.0)  # never settled: every pass
     calls.clear()
     every = _identified_backlash(geo, meas, geo.sigma_mm, geo.x, [j])
     where = (kind, info["joints"], seed, n_settled, len(calls))
