@@ -42,9 +42,9 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
         tried = _simplest_first(tried + [(a, t) for (a, _), t in zip(narrowed, fits)], model)
     best = tried[0][1].metrics()["holdout_rms_mm"]
     same = lambda e: (e.kind, e.joints, e.harmonic)  # noqa: E731
-    alike = [{**_who(a.effect, model), "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
-             for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best
-             and same(a.effect) != same(tried[0][0].effect)]
+    alike = _merge_alike([{**_who(a.effect, model), "holdout_rms_after_mm": t.metrics()["holdout_rms_mm"]}
+                          for a, t in tried[1:] if t.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * best
+                          and same(a.effect) != same(tried[0][0].effect)])
     return tried[0][0], tried[0][1], alike
 
 
@@ -113,10 +113,15 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
     return out
 
 
-def _merge_alike(alike: list[dict], more: list[dict]) -> list[dict]:
-    """Look-alikes `alike` and those of `more` naming another cause (kind and joints)."""
-    seen = {(a["kind"], tuple(a["joints"])) for a in alike}
-    return alike + [a for a in more if (a["kind"], tuple(a["joints"])) not in seen]
+def _merge_alike(alike: list[dict], more: list[dict] = ()) -> list[dict]:
+    """Look-alikes `alike` and `more`, one per cause (kind, joints, harmonic): the form of it that did best on held-out
+    poses, where the prose named a bent link and its tilted form as "link_deflection J6, link_deflection J6"."""
+    best: dict = {}
+    for a in [*alike, *more]:
+        key = (a["kind"], tuple(a["joints"]), a.get("harmonic"))
+        if key not in best or a.get("holdout_rms_after_mm", np.inf) < best[key].get("holdout_rms_after_mm", np.inf):
+            best[key] = a
+    return list(best.values())
 
 
 def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref, rivals=()):
@@ -139,7 +144,7 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref, rivals=()
     alike = [{**_who(a, model), "holdout_rms_after_mm": ta.metrics()["holdout_rms_mm"]}
              for a, ta in tried if a is not best and a.kind != best.kind
              and (ta.metrics()["holdout_rms_mm"] <= INDISTINGUISHABLE * h or not _better(ta, t, 0.05))]
-    alike = list({(a["kind"], tuple(a["joints"]), a.get("harmonic")): a for a in alike}.values())  # one per cause
+    alike = _merge_alike(alike)
     if best is c.effect:
         return c, trial, alike
     return Candidate(**{**c.__dict__, "effect": best, "label": best.label(model)}), t, alike

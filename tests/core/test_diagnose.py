@@ -790,3 +790,18 @@ def test_a_plays_switch_is_the_weighted_logistic_optimum_then_the_tanh_fit(seed)
     assert cos > 1 - 1e-6, (seed, cos)
     beta = _switch(Z, e, w, rng.normal(size=k))
     assert np.mean(np.sign(Z @ beta) == np.sign(Z @ truth)) > 0.9, seed
+
+
+def test_a_look_alike_is_named_once_per_cause():
+    """A bent link and its tilted form are one cause in the answer (the prose said "link_deflection J6,
+    link_deflection J6"): the form that did best on held-out poses stands for it; other causes keep their order."""
+    from calib_core.diagnosis.lookalikes import _merge_alike
+    rng = np.random.default_rng()
+    h = rng.uniform(0.05, 0.2, 4)
+    plain = {"kind": "link_deflection", "joints": ["J6"], "form": "link_deflection[J6]", "holdout_rms_after_mm": h[0]}
+    tilted = {**plain, "form": "link_deflection[J6] tilted", "holdout_rms_after_mm": h[1]}
+    spring = {"kind": "joint_compliance", "joints": ["J4"], "form": "joint_compliance[J4]", "holdout_rms_after_mm": h[2]}
+    h1 = {"kind": "cyclic_joint_error", "joints": ["J4"], "harmonic": 1, "holdout_rms_after_mm": h[3]}
+    h2 = {**h1, "harmonic": 2}
+    out = _merge_alike([plain, spring], [tilted, h1, h2])
+    assert out == [plain if h[0] <= h[1] else tilted, spring, h1, h2]
