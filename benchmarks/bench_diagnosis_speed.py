@@ -135,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     base, new = tree_of(args.base), tree_of(args.new)
     t0 = time.perf_counter()
-    tasks = [(c, which, tree, w) for c in args.cases for which, tree, w in (("base", base, 1), ("new", new, args.workers))]
+    sides = (("base", base, 1), ("new", new, args.workers))
+    tasks = [(c, which, tree, w) for c in args.cases for which, tree, w in sides]
     on = lambda case, which: "motoman" if (case, which) == ("motoman_order", "base") else case  # noqa: E731
     with ThreadPoolExecutor(args.jobs) as pool:  # each task is its own process; threads only wait
         done = list(pool.map(lambda t: (t[0], t[1], run(on(t[0], t[1]), t[2], args.root, args.cache, t[3])), tasks))

@@ -23,8 +23,9 @@ R = TypeVar("R")
 def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Sequence[object] = ()) -> list[R]:
     """[fn(item) for item in items] in `workers` processes (this one and workers - 1 forked children), each taking
     the next item left when it is free (the parts differ in cost: one joint's play search, another's). An exception
-    in a part is raised here, as in the loop; the parts of a child that died without answering are done here. The `shared` objects come back as themselves, not as copies (a fit's
-    model: the search checks a calibration's model by identity)."""
+    in a part is raised here, as in the loop; the parts of a child that died without answering are done here. The
+    `shared` objects come back as themselves, not as copies (a fit's model: the search checks a calibration's model
+    by identity)."""
     items = list(items)
     k = min(max(int(workers), 1), len(items))
     if k <= 1 or not hasattr(os, "fork"):

@@ -32,7 +32,8 @@ class _Fitter:
 
     @property
     def shared(self) -> tuple:
-        """What a fit made in a worker process (parallel.pmap) must come back holding as itself: the model."""
+        """What a fit made in a worker process (parallel.pmap) must come back holding as itself: the model (the search
+        checks a calibration's model by identity) and the poses."""
         return (self.model, self.meas)
 
     def apart(self, fn: Callable[[T], R]) -> Callable[[T], R]:

@@ -30,7 +30,7 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
     rivals = [a for a in ranked if a is not c and a.log_p <= thresholds.get(id(a.effect), -np.inf)
               and a.explained >= share * c.explained]
     rivals = rivals[:MAX_LOOKALIKES]
-    tried += zip(rivals, pmap(fit.apart(lambda alt: fit(chosen + [alt.effect], x_ref)), rivals, fit.workers, fit.shared))
+    tried += zip(rivals, pmap(fit.apart(lambda a: fit(chosen + [a.effect], x_ref)), rivals, fit.workers, fit.shared))
     tried = _simplest_first(tried, model)
     # a compliance of several joints that the simpler pick passed over, on its strong joints: springs on two joints
     # of five are as few parameters as a link's bending (only then: each is a fit of the whole model)
@@ -130,6 +130,7 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref, rivals=()
     or not significantly worse, are look-alikes (a stiffening spring and a soft play both bend less and less
     as the load grows)."""
     ctx = Context(model, K.Chain(model, x_ref, fit.meas.joints, None, fit.meas.labels), fit.meas)
+
     def refit(alt: Effect):
         try:  # a form of a cause already found replaces it (a play refined into the spring found before)
             return fit([e for e in chosen if _cause(e) != _cause(alt)] + [alt], x_ref)

@@ -13,9 +13,9 @@ from ..effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJoin
                                lateral_axes, load_mix_for, mass_step, tilted)
 from ..identify import Calibration, widened
 from ..io import Measurements
-from ..parallel import pmap
 from ..kinematics import _cross
 from ..model import RobotModel
+from ..parallel import pmap
 from .evidence import REFINE_ALPHA, _p, holdout_gain
 from .fitter import _Fitter
 from .screening import _robust_sigma, _weighted_columns, _weighted_system, orthonormal_basis, weighted_misfit
@@ -151,6 +151,7 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
         effects = [dataclasses.replace(e, masses=carried.masses, gravity=carried.gravity) if i in idx else e
                    for i, e in enumerate(chosen)]
         t = fit(effects, current.x, folds=0)
+
     def path(scan: bool) -> tuple:
         """The steps from the carried mass data, or (scan) from the best of a ring of tilts (_tilt_scan)."""
         if not scan:
