@@ -279,7 +279,7 @@ def cmd_plan(args) -> int:
         from calib_core.diagnosis import diagnose
 
         print(f"diagnosing {args.data} ({meas.n_poses} poses) ...", file=sys.stderr, flush=True)
-        d = diagnose(model, meas)
+        d = diagnose(model, meas, workers=Settings.from_env().diagnosis_workers)  # as an auto job runs it
         effects, robot = d.calibration.effects, d.calibration.robot
         rivals = lookalike_pairs(model, meas, effects, d.findings)
         if not rivals:
