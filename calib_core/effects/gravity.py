@@ -421,6 +421,13 @@ class MassStep(Effect):
         P = 4 * len(self.bodies)
         bq, bp = np.zeros((N, n, P + 2)), np.zeros((N, 3, P + 2))
         g = np.asarray(self.gravity, float)
+
+        def drive(j: int, scale: float, Y: np.ndarray, src: np.ndarray, dst: np.ndarray) -> None:
+            """bq[:, :, dst] += scale * (the rows joint j's drive moves) * Y[:, src]: on those rows alone (a drive
+            moves one row or a few coupled ones; the other rows add zeros, and cost Agile Justin 0.8 s)."""
+            rows = np.flatnonzero(ctx.moves[:, j])
+            bq[:, rows[:, None], dst] += scale * ctx.moves[rows, j][None, :, None] * Y[:, None, src]
+
         for effect, values in self.causes:
             v = np.asarray(values, float)
             if isinstance(effect, LinkDeflection):
@@ -430,8 +437,7 @@ class MassStep(Effect):
                 for t, j in enumerate(effect.joints):
                     src, dst = self._columns(model, j)
                     for a, ga in enumerate(effect.across(model)):
-                        bq[:, :, dst] += (v[2 * t + a] * ctx.moves[None, :, j, None]
-                                          * drive_regressor(ch, j, ga)[:, None, src])
+                        drive(j, v[2 * t + a], drive_regressor(ch, j, ga), src, dst)
                 continue
             for t, j in enumerate(effect.joints):
                 src, dst = self._columns(model, j)
@@ -441,7 +447,7 @@ class MassStep(Effect):
                         swing = _cross(axis, lever) * v[2 * t + a]
                         bp[:, :, dst] += swing[:, :, None] * gravity_regressor(ch, j, axis, g)[:, None, src]
                 elif not model.prismatic[j]:  # a linear axis' force changes with the carried mass only: left to the fit
-                    bq[:, :, dst] += v[t] * ctx.moves[None, :, j, None] * drive_regressor(ch, j, g)[:, None, src]
+                    drive(j, v[t], drive_regressor(ch, j, g), src, dst)
             here_q, here_p = effect.basis(ctx).dense(n, len(v))
             size = np.sqrt((here_q**2).sum((0, 1)) + (here_p**2).sum((0, 1)))
             v = np.where(size > 1e-9 * size.max(), v, 0.0)  # a load of rounding (a vertical axis) fits no compliance
