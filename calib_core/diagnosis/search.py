@@ -17,6 +17,7 @@ from ..effects.structure import session_clock, step_candidates
 from ..identify import Calibration, identify
 from ..io import Measurements
 from ..model import RobotModel
+from ..parallel import pmap
 from ..select import select_geometry
 from .evidence import ACCEPT_ALPHA, HOLDOUT_ALPHA, _better, _p, holdout_gain, holdout_ms
 from .findings import (SIGNIFICANT_STD, STRONG_STD, _beyond, _chain, _finding, _judge_sizes, _who,
@@ -473,10 +474,12 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
         shared = next((f["effects"] for f in follows if f.get("family") == "shared_by_targets"), [])  # no correction
         trial = weighted = None  # can predict what the targets of a pose share
         if follows or not noise_like:
-            fitted = [] if search.late("a smooth correction of what is left") else [
-                fit_residual_field(fit, current, chosen, x_ref,
-                                   (field_scale(current, meas, x_ref, folds),) if folds > 1 else LENGTH_SCALES),
-                _drive_field(fit, chosen, x_ref, follows)]
+            corrections = [  # the smooth field and the joint-driven one, apart (fit.workers)
+                lambda: fit_residual_field(fit, current, chosen, x_ref, (field_scale(current, meas, x_ref, folds),)
+                                           if folds > 1 else LENGTH_SCALES),
+                lambda: _drive_field(fit, chosen, x_ref, follows)]
+            fitted = [] if search.late("a smooth correction of what is left") else pmap(
+                fit.apart(lambda make: make()), corrections, fit.workers, fit.shared)
             for t, rf in sorted([f for f in fitted if f], key=lambda f: f[0].metrics()["holdout_rms_mm"]):
                 if _better(current, t, HOLDOUT_ALPHA):
                     trial = (t, rf)
