@@ -19,6 +19,10 @@ from typing import Callable, Iterator, Sequence, TypeVar
 T = TypeVar("T")
 R = TypeVar("R")
 
+MAX_ITEMS = 16384
+"""More items than the queue pipe's buffer holds (64 KiB, 4 bytes each) are done in order here: writing their indices
+would wait for a reader that is not there yet. The search's largest pool is some hundreds."""
+
 
 def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Sequence[object] = ()) -> list[R]:
     """[fn(item) for item in items] in `workers` processes (this one and workers - 1 forked children), each taking
@@ -28,11 +32,11 @@ def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Seq
     by identity)."""
     items = list(items)
     k = min(max(int(workers), 1), len(items))
-    if k <= 1 or not hasattr(os, "fork"):
+    if k <= 1 or not hasattr(os, "fork") or len(items) > MAX_ITEMS:
         return [fn(item) for item in items]
     queue_r, queue_w = os.pipe()  # the items' indices, 4 bytes each: a read of 4 bytes takes one, atomically
-    os.write(queue_w, struct.pack(f"<{len(items)}i", *range(len(items))))  # 4 x len(items) bytes: within the
-    os.close(queue_w)  # pipe's buffer for any pool the search makes (64 KiB: 16384 items)
+    os.write(queue_w, struct.pack(f"<{len(items)}i", *range(len(items))))
+    os.close(queue_w)
     children, parent = [], os.getpid()
     for _ in range(1, k):
         read, write = os.pipe()

@@ -14,7 +14,7 @@ import pytest
 
 from calib_core.diagnosis import diagnose
 from calib_core.model import parse_model
-from calib_core.parallel import pmap
+from calib_core.parallel import MAX_ITEMS, pmap
 from calib_core.robots import spray7
 from calib_world import World
 from calib_world.scenarios import hide
@@ -33,6 +33,11 @@ def _slow(fn, s: float = 0.1):
         time.sleep(s)
         return fn(item)
     return part
+
+
+def test_more_items_than_the_queue_holds_are_done_in_order():
+    n = MAX_ITEMS + 1
+    assert pmap(lambda i: (i, os.getpid()), range(n), 2) == [(i, os.getpid()) for i in range(n)]
 
 
 def test_pmap_runs_parts_in_other_processes():
@@ -90,7 +95,7 @@ def test_a_helper_dies_with_its_parent(tmp_path):
     pid_file = tmp_path / "child.pid"
     script = textwrap.dedent(f"""
         import os, time
-        from calib_core.parallel import pmap
+        from calib_core.parallel import MAX_ITEMS, pmap
         def part(i):
             if i == 1:
                 open({str(pid_file)!r}, "w").write(str(os.getpid()))
