@@ -310,7 +310,7 @@ class ThroughJoints:
     were a third of each LM evaluation). The same sums as the dense products, without their zero terms."""
 
     def __init__(self, Phi_q: np.ndarray, Phi_p: np.ndarray):
-        N, n, K = Phi_q.shape
+        n = Phi_q.shape[1]
         nz = np.abs(Phi_q).max(axis=0) > 0  # (n, K): the joints each column moves
         per = nz.sum(0)
         self.single = np.flatnonzero(per == 1)
@@ -322,7 +322,6 @@ class ThroughJoints:
         self.rows = np.flatnonzero(nz[:, self.multi].any(1))
         self.P = np.ascontiguousarray(Phi_q[:, self.rows][:, :, self.multi])  # (N, r, Km)
         self.PpT = np.ascontiguousarray(Phi_p.transpose(2, 0, 1))  # (K, N, 3)
-        self.N, self.n = N, n
 
     def shift(self, theta: np.ndarray) -> np.ndarray:
         """Phi_q theta (N, n): the joint offsets the effects give."""
