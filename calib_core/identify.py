@@ -358,6 +358,7 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
     q, y, labels = meas.joints, meas.points, meas.labels
     p_geo = len(idx)
     K_eff = 0 if bases is None else bases[0].shape[2]
+    through = None if not K_eff else ThroughJoints(*bases)
 
     def residual_jac(xs):
         x = x0.copy()
@@ -374,8 +375,6 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
         np.take(chain.jacobian().transpose(2, 0, 1), idx, axis=0, out=J[:p_geo])
         through.columns(chain.joint_jacobian(), out=J[p_geo:])
         return y - chain.p - bases[1] @ theta, J.transpose(1, 2, 0)
-
-    through = None if not K_eff else ThroughJoints(*bases)
 
     nominal, prior = _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior, K_eff)
     begin = nominal if start is None else start

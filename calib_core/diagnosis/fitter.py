@@ -50,9 +50,8 @@ class _Fitter:
         return run
 
     def __call__(self, effects=(), x_ref=None, folds: int | None = None, pose_noise=None,
-                 model_error_mm: float | None = None, aside: bool = False) -> Calibration:
-        """The fit; `aside`: a comparison the search does not go on from (the next fit starts where the last one
-        that was not aside ended)."""
+                 model_error_mm: float | None = None) -> Calibration:
+        """The fit; the next one starts where it ended (a comparison the search does not go on from: `apart`)."""
         refold = None
         if any(_identified_play(e) for e in effects):
             refold = lambda cal: _refold_plays(self.meas, cal)  # noqa: E731
@@ -60,6 +59,5 @@ class _Fitter:
                        prior_scale=self.prior_scale, folds=self.folds if folds is None else folds, refold=refold,
                        pose_noise=pose_noise, start=self.last[0] if self.last else None,
                        model_error_mm=model_error_mm)
-        if not aside:
-            self.last[:] = [cal]
+        self.last[:] = [cal]
         return cal

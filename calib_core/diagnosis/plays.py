@@ -349,7 +349,12 @@ def _switch(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta0: np.ndarray)
         return -sw[:, None] * np.column_stack([0.5 * th, (0.5 * p[0] / t) * (1.0 - th**2)[:, None] * Z])
 
     p = _minpack_lm(fun, jac, np.r_[b, beta], 50)
-    return p[1:] * np.sign(p[0]) / max(float(np.sqrt(np.mean((Z @ p[1:]) ** 2))), 1e-300)
+    return _unit_rms(Z, p[1:] * np.sign(p[0]))
+
+
+def _unit_rms(Z: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """beta scaled so that the load direction Z beta has unit RMS over the poses."""
+    return beta / max(float(np.sqrt(np.mean((Z @ beta) ** 2))), 1e-300)
 
 
 LOGISTIC_RIDGE = 1e-3
@@ -366,7 +371,7 @@ def _logistic(Z: np.ndarray, y: np.ndarray, c: np.ndarray, beta0: np.ndarray) ->
     def loss(beta):
         return float(c @ np.logaddexp(0.0, -y * (Z @ beta))) + 0.5 * lam * float(beta @ beta)
 
-    beta = beta0 / max(float(np.sqrt(np.mean((Z @ beta0) ** 2))), 1e-300)
+    beta = _unit_rms(Z, beta0)
     now = loss(beta)
     for _ in range(30):
         sig = special.expit(-y * (Z @ beta))  # d/dm log(1 + exp(-m)) = -sig
@@ -381,7 +386,7 @@ def _logistic(Z: np.ndarray, y: np.ndarray, c: np.ndarray, beta0: np.ndarray) ->
         beta, now = beta - step, min(trial, now)
         if float(np.abs(step).max()) < 1e-8 * max(float(np.abs(beta).max()), 1.0):
             break
-    return beta / max(float(np.sqrt(np.mean((Z @ beta) ** 2))), 1e-300)
+    return _unit_rms(Z, beta)
 
 
 def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray) -> np.ndarray:
@@ -397,7 +402,7 @@ def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray
         return float(np.sum((sw * (e - 0.5 * amplitude(bz) * np.tanh(bz))) ** 2))
 
     linear = np.linalg.lstsq(Z * sw[:, None], e * sw, rcond=None)[0]  # a soft play is linear near zero load
-    linear = linear / max(float(np.sqrt(np.mean((Z @ linear) ** 2))), 1e-300)
+    linear = _unit_rms(Z, linear)
     starts = [beta / t for t in (0.05, 0.15, 0.5, 1.5)] + [linear * a for a in (0.5, 1.0, 2.0, 4.0)]
     start = min(starts, key=lambda bb: cost(Z @ bb))
 

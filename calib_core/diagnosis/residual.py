@@ -85,8 +85,8 @@ def _simplest_step(near: list[Candidate], limit: float, fit: _Fitter, chosen: li
     small = min(simpler, key=lambda c: c.bic)
     if log_p_beyond(best, small) > limit:
         return small
-    rss = [weighted_misfit(fit(tuple(chosen) + (c.effect,), x_ref, folds=1, model_error_mm=cal.model_error_mm,
-                               aside=True), sigma) for c in (small, best)]  # weighted as cal is: one solve each
+    refit = fit.apart(lambda c: fit(tuple(chosen) + (c.effect,), x_ref, folds=1, model_error_mm=cal.model_error_mm))
+    rss = [weighted_misfit(refit(c), sigma) for c in (small, best)]  # weighted as cal is: one solve each
     extra = best.dof - small.dof
     F = (max(rss[0] - rss[1], 0.0) / extra) / max(rss[1] / best.residual_dof, 1e-300)
     return small if stats.f.logsf(F, extra, best.residual_dof) > limit else best
