@@ -48,7 +48,7 @@ class Settings:
     job_timeout_s: float = 600.0  # CALIB_JOB_TIMEOUT_S: a job running longer (summed over attempts) fails, its process killed
     progress_seconds: float = 0.5  # CALIB_PROGRESS_SECONDS: a running job's progress row is written this often
     diagnosis_workers: int = 1  # CALIB_DIAGNOSIS_WORKERS: processes of one auto job's diagnosis (default: 2, 1 on
-    # one core; its forked helpers share the job's niceness and die with its process)
+    # one core; at most the cores; its forked helpers share the job's niceness and die with its process)
     job_nice: int = 10  # CALIB_JOB_NICE: the job processes' niceness (0-19): identification is batch work, the API and
     # its lanes answer people (a red team's load with jobs running: /health p99 230 ms at 0)
     warm_pool: bool = True  # CALIB_WARM_POOL: start the job processes (imports, one tiny calibration) before serving
@@ -85,7 +85,8 @@ class Settings:
             heartbeat_seconds=_float("CALIB_HEARTBEAT_SECONDS", max(0.2, lease / 3)),
             poll_seconds=_float("CALIB_POLL_SECONDS", 0.5),
             job_nice=min(19, max(0, _int("CALIB_JOB_NICE", 10))),
-            diagnosis_workers=max(1, _int("CALIB_DIAGNOSIS_WORKERS", default_diagnosis_workers())),
+            diagnosis_workers=min(max(1, _int("CALIB_DIAGNOSIS_WORKERS", default_diagnosis_workers())),
+                                  os.cpu_count() or 1),  # more processes than cores only add forks
             max_attempts=_int("CALIB_MAX_ATTEMPTS", 3),
             retry_backoff_seconds=_float("CALIB_RETRY_BACKOFF_SECONDS", 1.0),
             worker_concurrency=_int("CALIB_WORKER_CONCURRENCY", 2),

@@ -11,6 +11,7 @@
 """
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -117,3 +118,12 @@ def test_a_long_compensate_holds_no_route_thread_and_is_stopped_at_its_bound(com
     assert r.status_code == 200, r.text  # a new process answers the next one
     p = np.array(r.json()["positions"])
     assert p.shape == (3, 3) and np.abs(p - targets[:3]).max() < 5.0, p
+
+
+@pytest.mark.parametrize("asked", ["0", "1", "2", "500"])
+def test_a_diagnosis_runs_in_at_least_one_process_and_at_most_the_cores(asked, monkeypatch):
+    """CALIB_DIAGNOSIS_WORKERS: 0 means one process, a thousand forks of a large job process only cost time."""
+    from service.config import Settings
+
+    monkeypatch.setenv("CALIB_DIAGNOSIS_WORKERS", asked)
+    assert Settings.from_env().diagnosis_workers == min(max(int(asked), 1), os.cpu_count() or 1)
