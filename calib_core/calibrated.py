@@ -64,9 +64,8 @@ class CalibratedRobot:
     def effect_offsets(self, joints: np.ndarray, columns: Measurements | None = None):
         """Joint offsets (N, n) and displacements (N, 3) mm of the identified effects at these joints, with
         the bases on the geometry they were fitted on (so a prediction is the fitted model, exactly)."""
-        meas = _columns(joints, columns)
-        x = self.x if self.x_basis is None else self.x_basis
-        ctx = Context(self.model, K.Chain(self.model, x, joints, self.R0, meas.labels), meas)
+        meas = columns if columns is not None and joints is columns.joints else _columns(joints, columns)
+        ctx = Context.at(self.model, self.x if self.x_basis is None else self.x_basis, meas, self.R0)
         return apply(list(self.effects), list(self.effect_values), ctx)
 
     def chain(self, joints: np.ndarray, columns: Measurements | None = None) -> tuple[K.Chain, np.ndarray | float]:

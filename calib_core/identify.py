@@ -258,10 +258,10 @@ def _split(theta: np.ndarray, effects, model) -> list[np.ndarray]:
 def effect_bases(model, meas, effects, x, R0) -> tuple[np.ndarray, np.ndarray]:
     """Stacked bases of the effects at the poses: Phi_q (N, n, K) and Phi_p (N, 3, K)."""
     n = meas.joints.shape[1]
-    ctx = Context(model, K.Chain(model, x, meas.joints, R0, meas.labels), meas)
+    ctx = Context.at(model, x, meas, R0)
     bq, bp = [], []
     for e in effects:
-        q, p = e.basis(ctx).dense(n, len(e.parameter_names(model)))
+        q, p = ctx.basis(e).dense(n, len(e.parameter_names(model)))
         bq.append(q)
         bp.append(p)
     return np.concatenate(bq, axis=2), np.concatenate(bp, axis=2)

@@ -6,7 +6,6 @@ import dataclasses
 
 import numpy as np
 
-from .. import kinematics as K
 from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedLinkDeflection,
                        has_loads, on_joints)
 from ..effects.structure import STEP_WINDOW, at_gap, session_clock
@@ -129,7 +128,7 @@ def _refine(c, trial, chosen, load_pool, play_pool, model, fit, x_ref, rivals=()
     significantly better than it (paired test), the best on held-out poses; the other forms within 2 % of it,
     or not significantly worse, are look-alikes (a stiffening spring and a soft play both bend less and less
     as the load grows)."""
-    ctx = Context(model, K.Chain(model, x_ref, fit.meas.joints, None, fit.meas.labels), fit.meas)
+    ctx = Context.at(model, x_ref, fit.meas)
 
     def refit(alt: Effect):
         try:  # a form of a cause already found replaces it (a play refined into the spring found before)

@@ -100,7 +100,7 @@ def _identified_play(e: Effect) -> bool:
 def _basis_context(cal: Calibration, meas: Measurements) -> Context:
     """What cal's effects look at on these poses: the geometry their bases were fitted on."""
     x = cal.x if cal.x_basis is None else cal.x_basis
-    return Context(cal.model, K.Chain(cal.model, x, meas.joints, cal.R0, meas.labels), meas)
+    return Context.at(cal.model, x, meas, cal.R0)
 
 
 def _play_readings(cal: Calibration, meas: Measurements, ctx: Context) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -114,7 +114,7 @@ def _play_readings(cal: Calibration, meas: Measurements, ctx: Context) -> dict[i
     for i, (e, v) in enumerate(zip(cal.effects, cal.effect_values)):
         if isinstance(e, Backlash) or _identified_play(e):
             col = Jq[:, :, e.joints[0]]
-            off, w = _joint_offsets(col, residual + col * (v[0] * e.basis(ctx).joint[:, e.joints[0], 0])[:, None])
+            off, w = _joint_offsets(col, residual + col * (v[0] * ctx.basis(e).joint[:, e.joints[0], 0])[:, None])
             out[i] = off, w / sigma**2
     return out
 
@@ -252,8 +252,8 @@ def _identified_backlash(cal: Calibration, meas: Measurements, sigma: np.ndarray
     (`workers` processes, parallel.pmap); once `late()`, returns the plays of the joints before the one it cut."""
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
-    ref = K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels)
-    ref_ctx = Context(model, ref, meas)
+    ref_ctx = Context.at(model, x_ref, meas, cal.R0)
+    ref = ref_ctx.chain
     nominal = ref_ctx.loads if has_loads(model, meas) else None
     residual = meas.points - cal.predict(meas.joints, meas)
     Jq = _joint_columns(cal, meas)

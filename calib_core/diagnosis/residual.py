@@ -3,10 +3,8 @@ offsets, the targets' shared motion as pose noise) and the `unexplained` finding
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 from .. import shared_motion
-from .. import kinematics as K
 from ..effects import Context, Effect, JointCompliance, LoadCompliance, Probe, SessionStep, has_loads
 from ..effects.residual import LENGTH_SCALES, ResidualField, field_prior_std
 from ..effects.structure import ORDER_NAMES, probes, step_candidates, steps_near
@@ -16,8 +14,8 @@ from .evidence import HOLDOUT_ALPHA, _better, _p, holdout_gain, model_error_mm
 from .findings import _names
 from .fitter import _Fitter
 from .masses import _distributed
-from .screening import (Candidate, _robust_sigma, _weighted_columns, _weighted_system, fold_predictions, log_p_beyond,
-                        screen, weighted_misfit)
+from .screening import (Candidate, _robust_sigma, _weighted_columns, _weighted_system, f_logsf, fold_predictions,
+                        log_p_beyond, screen, weighted_misfit)
 from .time_structure import _when
 
 
@@ -89,7 +87,7 @@ def _simplest_step(near: list[Candidate], limit: float, fit: _Fitter, chosen: li
     rss = [weighted_misfit(refit(c), sigma) for c in (small, best)]  # weighted as cal is: one solve each
     extra = best.dof - small.dof
     F = (max(rss[0] - rss[1], 0.0) / extra) / max(rss[1] / best.residual_dof, 1e-300)
-    return small if stats.f.logsf(F, extra, best.residual_dof) > limit else best
+    return small if f_logsf(F, extra, best.residual_dof) > limit else best
 
 
 def _shared_motion(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray
@@ -192,7 +190,7 @@ def field_scale(current: Calibration, meas: Measurements, x_ref: np.ndarray, fol
     chosen scale is then fitted in full (four full fits with folds cost the Motoman 5 of its 10 s)."""
     sigma = _robust_sigma(current, current.sigma_mm)
     r, Q, chain = _weighted_system(current, meas, sigma, x_ref)
-    ctx = Context(current.model, K.Chain(current.model, x_ref, meas.joints, current.R0, meas.labels), meas)
+    ctx = Context.at(current.model, x_ref, meas, current.R0)
     Jq = chain.joint_jacobian()
     fold = np.repeat(pose_folds(meas, folds), 3)
     prior = field_prior_std(current)

@@ -6,10 +6,10 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy import linalg, stats
+from scipy import linalg, special
 
-from .. import kinematics as K
 from ..effects import Context, Effect, SessionStep
+from ..effects.base import Basis
 from ..effects.residual import PRIOR_STD_MM, ResidualField
 from ..identify import Calibration, effect_bases, pose_folds
 from ..io import Measurements
@@ -39,6 +39,16 @@ class Candidate:
     regressor_label: str
     projected_residual_mm: np.ndarray  # residual along the effect's direction, per pose
     fitted_mm: np.ndarray  # the effect's fitted displacement along the same direction
+
+
+def f_logsf(F: float, dfn: float, dfd: float) -> float:
+    """log P(F' > F) for F' ~ F(dfn, dfd): scipy.stats.f.logsf's arithmetic (log of the upper tail above the median,
+    log1p of the lower one below it) without its argument handling, 0.4 ms a call, which screening calls thousands
+    of times."""
+    with np.errstate(divide="ignore"):
+        if F > special.fdtri(dfn, dfd, 0.5):
+            return float(np.log(special.fdtrc(dfn, dfd, F)))
+        return float(np.log1p(-special.fdtr(dfn, dfd, F)))
 
 
 def _robust_sigma(cal: Calibration, sigma: np.ndarray) -> np.ndarray:
@@ -126,7 +136,7 @@ def fold_predictions(A: np.ndarray, r: np.ndarray, fold: np.ndarray, folds: int,
 
 def _weighted_columns(e: Effect, ctx: Context, Jq: np.ndarray, sigma: np.ndarray):
     """The effect's columns of the coupled Jacobian, weighted, (m, k), and its basis."""
-    b = e.basis(ctx)
+    b = ctx.basis(e)
     k = len(e.parameter_names(ctx.model))
     C = np.zeros((ctx.meas.n_poses, 3, k))
     if b.joint is not None:
@@ -147,7 +157,7 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
-    ctx = Context(model, K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels), meas)
+    ctx = Context.at(model, x_ref, meas, cal.R0)
     Jq = chain.joint_jacobian()
     m, p = len(r), Q.shape[1]
     rss = float(r @ r)
@@ -170,7 +180,7 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
         if dof2 <= 0:
             return None
         F = (drss / k_test) / max((rss - drss) / dof2, 1e-300)
-        log_p = float(stats.f.logsf(F, k_test, dof2))
+        log_p = f_logsf(F, k_test, dof2)
         disp = fit.reshape(-1, 3) * sigma[:, None]  # mm
         direction = disp / np.maximum(np.linalg.norm(disp, axis=1, keepdims=True), 1e-300)
         return Candidate(
@@ -181,9 +191,18 @@ def screen(cal: Calibration, meas: Measurements, sigma: np.ndarray, pool: list[E
             regressor=b.regressor, regressor_label=b.regressor_label,
             projected_residual_mm=(res_mm * direction).sum(1), fitted_mm=(disp * direction).sum(1))
 
+    def score_apart(e: Effect) -> tuple[Candidate | None, Basis | None]:
+        """score(e) and e's basis if this process made it (a worker's come back to the context: later screens at
+        this reference geometry, the plays', the sub-search's, the revisits', reuse them)."""
+        fresh = ctx.made(e) is None
+        return score(e), ctx.basis(e) if fresh else None
+
     # a worker's candidates come back holding the pool's own effects (the search tells them apart by identity)
-    scored = pmap(score, pool, workers if len(pool) >= SCREEN_APART else 1, shared=pool)
-    return sorted([c for c in scored if c is not None], key=lambda c: c.bic)
+    scored = pmap(score_apart, pool, workers if len(pool) >= SCREEN_APART else 1, shared=pool)
+    for e, (_, b) in zip(pool, scored):
+        if b is not None and ctx.made(e) is None:
+            ctx.keep(e, b)
+    return sorted([c for c, _ in scored if c is not None], key=lambda c: c.bic)
 
 
 def field_share(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: np.ndarray) -> float:
@@ -194,7 +213,7 @@ def field_share(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_ref: 
     noise's size is thrown away."""
     sigma = _robust_sigma(cal, sigma)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
-    ctx = Context(cal.model, K.Chain(cal.model, x_ref, meas.joints, cal.R0, meas.labels), meas)
+    ctx = Context.at(cal.model, x_ref, meas, cal.R0)
     field = ResidualField((), length_scale=1.0, prior_std=max(PRIOR_STD_MM, 2.0 * cal.metrics()["holdout_rms_mm"]))
     Cw, _ = _weighted_columns(field, ctx, chain.joint_jacobian(), sigma)
     Cp = Cw - Q @ (Q.T @ Cw)
@@ -213,8 +232,7 @@ def log_p_beyond(big: Candidate, small: Candidate) -> float:
     gain = big.explained - small.explained
     if extra <= 0 or gain <= 0:
         return 0.0
-    return float(stats.f.logsf((gain / extra) / max((1.0 - big.explained) / big.residual_dof, 1e-300), extra,
-                               big.residual_dof))
+    return f_logsf((gain / extra) / max((1.0 - big.explained) / big.residual_dof, 1e-300), extra, big.residual_dof)
 
 
 def _thresholds(pool: list[Effect], alpha: float) -> dict[int, float]:
@@ -238,7 +256,7 @@ def linear_holdout(cal: Calibration, meas: Measurements, sigma: np.ndarray, x_re
     model = cal.model
     sigma = _robust_sigma(cal, sigma)
     r, Q, chain = _weighted_system(cal, meas, sigma, x_ref)
-    ctx = Context(model, K.Chain(model, x_ref, meas.joints, cal.R0, meas.labels), meas)
+    ctx = Context.at(model, x_ref, meas, cal.R0)
     Jq = chain.joint_jacobian()
     fold = np.repeat(pose_folds(meas, folds), 3)
     keep = cal.inliers()

@@ -468,18 +468,12 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     named = current  # the model of the named causes (what `unexplained` starts from)
     if unexplained and structure_left:
         report(0.85, "looking at what the residual left follows")
-        follows = _follows(current, meas, sigma, x_ref, alpha, load_pool, fit, chosen)
         held_out_rms = np.sqrt(holdout_ms(current))
         noise_like = basis == "assumed" and held_out_rms / floor <= NOISE_LIKE
+        follows, fitted = _follows_and_corrections(search, current, chosen, x_ref, load_pool, noise_like)
         shared = next((f["effects"] for f in follows if f.get("family") == "shared_by_targets"), [])  # no correction
         trial = weighted = None  # can predict what the targets of a pose share
         if follows or not noise_like:
-            corrections = [  # the smooth field and the joint-driven one, apart (fit.workers)
-                lambda: fit_residual_field(fit, current, chosen, x_ref, (field_scale(current, meas, x_ref, folds),)
-                                           if folds > 1 else LENGTH_SCALES),
-                lambda: _drive_field(fit, chosen, x_ref, follows)]
-            fitted = [] if search.late("a smooth correction of what is left") else pmap(
-                fit.apart(lambda make: make()), corrections, fit.workers, fit.shared)
             for t, rf in sorted([f for f in fitted if f], key=lambda f: f[0].metrics()["holdout_rms_mm"]):
                 if _better(current, t, HOLDOUT_ALPHA):
                     trial = (t, rf)
@@ -529,6 +523,33 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     d.explanation = explain(d, model)
     report(1.0, "diagnosis done")
     return d
+
+
+def _follows_and_corrections(search: _Search, current: Calibration, chosen: list[Effect], x_ref: np.ndarray,
+                             load_pool: dict[int, LoadCompliance], noise_like: bool) -> tuple[list[dict], list]:
+    """What the residual left by `chosen` follows (_follows) and, where it follows something or is not noise-like,
+    the corrections tried for it: the smooth field and the joint-driven one ((calibration, correction) or None
+    each; none past the deadline). Each correction starts from the same fit (fit.apart). With several processes the
+    smooth field, which needs nothing _follows finds, is fitted beside it (and dropped when it was not needed)."""
+    fit, meas, sigma, folds = search.fit, search.meas, search.sigma, search.fit.folds
+    apart = fit.apart(lambda make: make())
+
+    def smooth():
+        scales = (field_scale(current, meas, x_ref, folds),) if folds > 1 else LENGTH_SCALES
+        return fit_residual_field(fit, current, chosen, x_ref, scales)
+
+    def traced():
+        follows = _follows(current, meas, sigma, x_ref, search.alpha, load_pool, fit, chosen)
+        due = (follows or not noise_like) and not search.late("a smooth correction of what is left")
+        return follows, due, apart(lambda: _drive_field(fit, chosen, x_ref, follows)) if due else None
+
+    if fit.workers > 1 and not search.late("a smooth correction of what is left"):
+        field, (follows, due, drive) = pmap(apart, [smooth, traced], fit.workers, fit.shared)
+        if not due and (follows or not noise_like):  # a worker's deadline, said here
+            search.late("a smooth correction of what is left")
+        return follows, [field, drive] if due else []
+    follows, due, drive = traced()
+    return follows, [apart(smooth), drive] if due else []
 
 
 def _same_columns(a: Candidate, b: Candidate) -> bool:
