@@ -6,8 +6,8 @@ import dataclasses
 
 import numpy as np
 
-from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedLinkDeflection,
-                       has_loads, on_joints)
+from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, RootTurnLinkDeflection,
+                       TiltedLinkDeflection, has_loads, on_joints)
 from ..effects.structure import STEP_WINDOW, at_gap, session_clock
 from ..parallel import pmap
 from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
@@ -80,7 +80,9 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
                  ctx: Context, rivals: tuple = ()) -> list[Effect]:
     """Richer forms of an accepted cause, kept only if held-out poses prefer them: a stiffening spring, the
     load identified from the data instead of the mass data, a play whose switch follows the identified load,
-    a soft play (the joint moves through its play elastically near zero load), a bending link on a tilted base,
+    a soft play (the joint moves through its play elastically near zero load), a bending link whose root turns
+    under its bending moment (RootTurnLinkDeflection: a revolute link's; a telescopic stage's guide is a candidate of
+    its own), a bending link on a tilted base,
     also where the link is a look-alike among `rivals` (a spring the same poses cannot tell from it was kept as the
     simpler form: spray7's J3 link under a tilt, named J3's spring at 2x). ctx: the poses at the reference."""
     out: list[Effect] = [TiltedLinkDeflection(r.joints) for r in rivals
@@ -107,8 +109,10 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
             out += [dataclasses.replace(e, transition=e.transition / share * t) for t in SOFT_PLAY]
     if isinstance(e, (Backlash, JointCompliance, LoadCompliance)):
         out += [p for p in play_pool.get(j, []) if p != e]
-    if type(e) is LinkDeflection:  # part of its sag turned sideways by a base that is not level
-        out.append(TiltedLinkDeflection(e.joints))
+    if type(e) is LinkDeflection:  # part of its sag turned sideways by a base that is not level; its root giving
+        out.append(TiltedLinkDeflection(e.joints))  # (a telescopic stage's guide is a candidate of its own)
+        if not ctx.model.prismatic[j]:
+            out.append(RootTurnLinkDeflection(e.joints))
     return out
 
 

@@ -9,8 +9,8 @@ from ..io import Measurements
 from ..kinematics import Chain, nominal_vector
 from ..model import ANGULAR, GEOMETRIC, RobotModel
 from .base import Basis, Context, Effect, apply, has_loads, loads
-from .cartesian_effects import (AxisStraightness, GuidedLinkDeflection, LinkDeflection, LinkGrowth, ThermalDrift,
-                                TiltedLinkDeflection)
+from .cartesian_effects import (AxisStraightness, GuidedLinkDeflection, LinkDeflection, LinkGrowth,
+                                RootTurnLinkDeflection, ThermalDrift, TiltedLinkDeflection)
 from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale, TiltedCompliance, gravity_across
 from .residual import ResidualField
@@ -20,7 +20,7 @@ CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointE
                                    AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, LateralCompliance,
                                    LateralJointCompliance,
                                    SessionStep, Probe, TargetStep, LinkGrowth, TiltedCompliance,
-                                   TiltedLinkDeflection, GuidedLinkDeflection)}
+                                   TiltedLinkDeflection, GuidedLinkDeflection, RootTurnLinkDeflection)}
 KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
          "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
          "thermal_drift": ThermalDrift, "unexplained": ResidualField}
@@ -119,4 +119,5 @@ def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
 
 __all__ = ["effect_state", "on_joints", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LateralJointCompliance", "LoadCompliance", "Probe", "SessionStep", "TargetStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
            "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "LinkGrowth", "ThermalDrift",
-           "TiltedCompliance", "TiltedLinkDeflection", "GuidedLinkDeflection"]
+           "TiltedCompliance", "TiltedLinkDeflection", "GuidedLinkDeflection",
+           "RootTurnLinkDeflection"]
