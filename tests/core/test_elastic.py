@@ -6,11 +6,12 @@ import numpy as np
 
 from calib_core import kinematics as K
 from calib_core.diagnosis.fitter import _Fitter
-from calib_core.diagnosis.lookalikes import STIFFENING
+from calib_core.diagnosis.lookalikes import STIFFENING, _refinements
 from calib_core.diagnosis.masses import _identify_masses, _with_mass_doubt
 from calib_core.diagnosis.plays import _LoadFeatures
-from calib_core.effects import (Backlash, Context, JointCompliance, LateralJointCompliance, LinkDeflection, candidates,
-                                effect_from_state, effect_state)
+from calib_core.effects import (Backlash, Context, JointCompliance, LateralJointCompliance, LinkDeflection,
+                                RootTurnLinkDeflection, candidates, effect_from_state, effect_state)
+from calib_core.effects.cartesian_effects import _beam
 from calib_core.effects.gravity import (TILT_PRIOR_RAD, body_parameters, gravity_regressor, lateral_axes, mass_step,
                                        payload_load)
 from calib_core.effects.joint_effects import PLAY_PRIOR_MM, PLAY_PRIOR_RAD
@@ -402,3 +403,45 @@ def test_a_tilted_base_springs_mass_columns_are_its_deflection_per_unit_mass_dat
     k = 4 * step.bodies.index(body) + c
     scale = max(np.abs(moved).max(), np.abs(cols[:, :, k]).max())
     assert np.allclose(cols[:, :, k], moved, rtol=0, atol=1e-6 * scale + 1e-18), (TREE.joint_names[body], c)
+
+
+def test_a_links_root_turn_is_its_bending_and_a_turn_across_it_about_its_root(seed):
+    """RootTurnLinkDeflection on every revolute link of the tree: its first two columns are the plain bending's, its
+    third moves each target as a turn about the link's root (perpendicular to the lever from the root), growing with
+    the load; its state comes back as itself."""
+    meas, _, _, ch = _poses(seed, 30)
+    ctx = Context(TREE, ch, meas)
+    heavy = dataclasses.replace(meas, payload=meas.payload_kg() + 10.0)
+    done = 0
+    for k in range(1, TREE.n_joints):
+        if TREE.prismatic[k]:
+            continue
+        e = RootTurnLinkDeflection((k,))
+        assert e.parameter_names(TREE)[2] == f"{TREE.joint_names[k]}.root_compliance"
+        assert e.parameter_units(TREE)[2] == "rad/(N*mm)" and e.label(TREE).endswith(" root")
+        cart = e.basis(ctx).cart
+        assert np.array_equal(cart[:, :, :2], LinkDeflection((k,)).basis(ctx).cart)
+        turn = cart[:, :, 2]
+        if np.abs(turn).max() < 1e-9:
+            continue
+        start = _beam(ch, k, None)[0]
+        lever = ch.p - start
+        scale = np.abs(lever).max() * np.abs(turn).max()
+        assert np.allclose((turn * lever).sum(1), 0.0, atol=1e-9 * scale)  # a turn about the root
+        more = e.basis(Context(TREE, ch, heavy)).cart[:, :, 2]
+        assert np.linalg.norm(more) > np.linalg.norm(turn)  # 10 kg more at each tool: more moment at the root
+        back, values = effect_from_state(effect_state(e, np.array([1e-12, 2e-12, 3e-9])))
+        assert back == e and type(back) is RootTurnLinkDeflection and values[2] == 3e-9
+        done += 1
+    assert done > 3
+
+
+def test_a_found_revolute_links_richer_forms_include_its_root_turn():
+    """The refinements of a found bending link: its root turn on a revolute link; a telescopic stage's guide is a
+    candidate of its own (spray7's J6), not a refinement."""
+    model = parse_model(spray7())
+    meas = Twin(model, seed=4, repeatability_mm=0.0, tracker_noise=False).measure(n=20)
+    ctx = Context(model, K.Chain(model, K.nominal_vector(model), meas.joints, None, meas.labels), meas)
+    for k in range(1, model.n_joints):
+        forms = _refinements(LinkDeflection((k,)), {}, {}, ctx)
+        assert (RootTurnLinkDeflection((k,)) in forms) == (not model.prismatic[k]), model.joint_names[k]
