@@ -35,6 +35,10 @@ def test_one_context_per_model_poses_geometry_and_frame(setting):
     assert Context.at(model, x, meas, np.eye(3)) is not ctx
     other = meas.subset(np.arange(meas.n_poses))  # the same values, other poses object
     assert Context.at(model, x, other) is not ctx
+    written = meas.subset(np.arange(meas.n_poses))
+    again = Context.at(model, x, written)
+    written.joints[0, 0] += 0.1  # the same object, its poses written in place
+    assert Context.at(model, x, written) is not again
     for k in range(CONTEXTS):  # the oldest goes once CONTEXTS others were asked since
         bent = x.copy()
         bent[1] += 1e-6 * (k + 1)
