@@ -405,7 +405,7 @@ def test_a_tilted_base_springs_mass_columns_are_its_deflection_per_unit_mass_dat
     assert np.allclose(cols[:, :, k], moved, rtol=0, atol=1e-6 * scale + 1e-18), (TREE.joint_names[body], c)
 
 
-def test_a_links_root_turn_is_its_bending_and_a_turn_across_it_about_its_root(seed):
+def test_a_links_root_turn_is_its_bending_and_a_turn_about_its_root(seed):
     """RootTurnLinkDeflection on every revolute link of the tree: its first two columns are the plain bending's, its
     third moves each target as a turn about the link's root (perpendicular to the lever from the root), growing with
     the load; its state comes back as itself."""
