@@ -7,6 +7,7 @@ uses the same objects with hidden values to make data; compensation includes wha
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -34,13 +35,15 @@ class Context:
         reference geometry many times (Agile Justin: 3056 bases asked for, 1363 distinct)."""
         key = (np.asarray(x, float).tobytes(), None if R0 is None else np.asarray(R0, float).tobytes(),
                meas.joints.tobytes())  # the poses by value too: a Measurements' arrays can be written in place
-        for i, (m, q, k, ctx) in enumerate(_CONTEXTS):
-            if m is model and q is meas and k == key:
-                _CONTEXTS.append(_CONTEXTS.pop(i))  # the most recently used last
-                return ctx
+        with _CONTEXTS_LOCK:  # a service without compute processes predicts in several route threads
+            for i, (m, q, k, ctx) in enumerate(_CONTEXTS):
+                if m is model and q is meas and k == key:
+                    _CONTEXTS.append(_CONTEXTS.pop(i))  # the most recently used last
+                    return ctx
         ctx = cls(model, Chain(model, np.array(x, float), meas.joints, R0, meas.labels), meas)
-        _CONTEXTS.append((model, meas, key, ctx))
-        del _CONTEXTS[:-CONTEXTS]
+        with _CONTEXTS_LOCK:
+            _CONTEXTS.append((model, meas, key, ctx))
+            del _CONTEXTS[:-CONTEXTS]
         return ctx
 
     def basis(self, e: Effect) -> Basis:
@@ -76,6 +79,7 @@ class Context:
 CONTEXTS = 4
 """Contexts kept by Context.at: a round's reference geometry, the one its revisits screen at, and two spare."""
 _CONTEXTS: list[tuple] = []
+_CONTEXTS_LOCK = threading.Lock()
 
 
 def has_loads(model: RobotModel, meas: Measurements) -> bool:

@@ -77,3 +77,19 @@ def test_the_f_tail_is_scipys():
         F = 0.0 if rng.random() < 0.02 else float(np.exp(rng.uniform(-10.0, 12.0)))
         want, got = float(stats.f.logsf(F, dfn, dfd)), f_logsf(F, dfn, dfd)
         assert got == want or (np.isinf(want) and got == want), (seed, F, dfn, dfd, want, got)
+
+
+def test_contexts_asked_from_several_threads_at_once(setting):
+    """A service without compute processes predicts in several route threads: Context.at from eight threads at once
+    never fails and always gives a context of the geometry asked for."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    model, meas, x = setting
+
+    def ask(i: int) -> bool:
+        xi = x.copy()
+        xi[0] += 1e-6 * (i % 6)
+        return all(np.array_equal(Context.at(model, xi, meas).chain.x, xi) for _ in range(30))
+
+    with ThreadPoolExecutor(8) as pool:
+        assert all(pool.map(ask, range(48)))
