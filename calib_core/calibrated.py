@@ -61,11 +61,16 @@ class CalibratedRobot:
     x_basis: np.ndarray | None = None  # the geometry the effect bases were fitted on (default: x)
     setup_names: tuple[str, ...] = ("",)  # one base pose per setup, in this order
 
+    @property
+    def basis_x(self) -> np.ndarray:
+        """The geometry the effect bases were evaluated on: x_basis where there is one, else x (mm, rad)."""
+        return self.x if self.x_basis is None else self.x_basis
+
     def effect_offsets(self, joints: np.ndarray, columns: Measurements | None = None):
         """Joint offsets (N, n) and displacements (N, 3) mm of the identified effects at these joints, with
         the bases on the geometry they were fitted on (so a prediction is the fitted model, exactly)."""
         meas = columns if columns is not None and joints is columns.joints else _columns(joints, columns)
-        ctx = Context.at(self.model, self.x if self.x_basis is None else self.x_basis, meas, self.R0)
+        ctx = Context.at(self.model, self.basis_x, meas, self.R0)
         return apply(list(self.effects), list(self.effect_values), ctx)
 
     def chain(self, joints: np.ndarray, columns: Measurements | None = None) -> tuple[K.Chain, np.ndarray | float]:

@@ -89,6 +89,11 @@ class Calibration:
         return tuple(_split(self.solution.x[len(self.free):], self.effects, self.model))
 
     @property
+    def basis_x(self) -> np.ndarray:
+        """The geometry the effect bases were evaluated on: x_basis where there is one, else x (mm, rad)."""
+        return self.x if self.x_basis is None else self.x_basis
+
+    @property
     def robot(self) -> CalibratedRobot:
         return CalibratedRobot(self.model, self.x, self.R0, self.effects, self.effect_values,
                                self.x_basis if self.effects else None, self.setup_names)
@@ -728,7 +733,7 @@ def widened(cal: Calibration, meas: Measurements, extra: list[Effect], loss: str
     complement); refitted to the widened optimum instead, a prediction std narrowed by up to 8 % on one test world
     in ten."""
     effects = list(cal.effects) + list(extra)
-    bases = effect_bases(cal.model, meas, effects, cal.x if cal.x_basis is None else cal.x_basis, cal.R0)
+    bases = effect_bases(cal.model, meas, effects, cal.basis_x, cal.R0)
     x0, _ = prealign(cal.model, meas)
     start = np.r_[cal.solution.x, np.zeros(bases[0].shape[2] + len(cal.free) - len(cal.solution.x))]
     fit = functools.partial(_fit, cal.model, meas, cal.sigma_mm, x0, cal.R0, cal.free, loss, True, bases,

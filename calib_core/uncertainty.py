@@ -43,8 +43,7 @@ def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None =
     if not cal.effects and not extra:
         return K.Chain(model, cal.x, q, cal.R0, labels).jacobian()[:, :, cal.free]
     meas = _columns(q, columns)
-    Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects) + list(extra),
-                                cal.x if cal.x_basis is None else cal.x_basis, cal.R0)
+    Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects) + list(extra), cal.basis_x, cal.R0)
     theta = cal.solution.x[len(cal.free):]
     k = len(theta)
     chain = K.Chain(model, cal.x, q + Phi_q[:, :, :k] @ theta, cal.R0, labels)
@@ -84,15 +83,14 @@ def _misplaced(cal: Calibration, joints, columns: Measurements | None) -> np.nda
     if not switches:
         return out
     meas = _columns(q, columns)
-    x = cal.x if cal.x_basis is None else cal.x_basis
     Jq = cal.robot.chain(q, meas)[0].joint_jacobian()
-    ctx = Context(cal.model, K.Chain(cal.model, x, q, cal.R0, meas.labels), meas)
+    ctx = Context(cal.model, K.Chain(cal.model, cal.basis_x, q, cal.R0, meas.labels), meas)
     for e, v in switches:
         if isinstance(e, SessionStep):
             P = e.misplaced(ctx)
             every = np.full(len(q), np.inf)
             other = dataclasses.replace(meas, timestamp=every, sequence=every)  # every pose after the step
-            Phi_q, Phi_p = effect_bases(cal.model, other, [e], x, cal.R0)
+            Phi_q, Phi_p = effect_bases(cal.model, other, [e], cal.basis_x, cal.R0)
             d = np.einsum("nij,njk,k->ni", Jq, Phi_q, v) + np.einsum("nik,k->ni", Phi_p, v)
         else:
             P, d = e.flank_doubt(ctx), 0.5 * v[0] * Jq[:, :, e.joints[0]]

@@ -216,8 +216,7 @@ def _tilt_scan(t: Calibration, effects: list[Effect], idx: list[int], meas: Meas
     g = _gravity(effects[idx[0]], model)
     sigma = _robust_sigma(t, t.sigma_mm)
     chain, dp = t.robot.chain(meas.joints, meas)
-    xb = t.x if t.x_basis is None else t.x_basis
-    ctx = Context.at(model, xb, meas, t.R0)
+    ctx = Context.at(model, t.basis_x, meas, t.R0)
     Jq = chain.joint_jacobian()
     geometry = (chain.jacobian()[:, :, t.free] / sigma[:, None, None]).reshape(3 * len(sigma), -1)
     others = [_weighted_columns(e, ctx, Jq, sigma)[0] for i, e in enumerate(effects) if i not in idx]

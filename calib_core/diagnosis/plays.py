@@ -99,8 +99,7 @@ def _identified_play(e: Effect) -> bool:
 
 def _basis_context(cal: Calibration, meas: Measurements) -> Context:
     """What cal's effects look at on these poses: the geometry their bases were fitted on."""
-    x = cal.x if cal.x_basis is None else cal.x_basis
-    return Context.at(cal.model, x, meas, cal.R0)
+    return Context.at(cal.model, cal.basis_x, meas, cal.R0)
 
 
 def _play_readings(cal: Calibration, meas: Measurements, ctx: Context) -> dict[int, tuple[np.ndarray, np.ndarray]]:

@@ -533,6 +533,7 @@ def _follows_and_corrections(search: _Search, current: Calibration, chosen: list
     smooth field, which needs nothing _follows finds, is fitted beside it (and dropped when it was not needed)."""
     fit, meas, sigma, folds = search.fit, search.meas, search.sigma, search.fit.folds
     apart = fit.apart(lambda make: make())
+    untested = "a smooth correction of what is left"  # what the deadline leaves, said once
 
     def smooth():
         scales = (field_scale(current, meas, x_ref, folds),) if folds > 1 else LENGTH_SCALES
@@ -540,13 +541,13 @@ def _follows_and_corrections(search: _Search, current: Calibration, chosen: list
 
     def traced():
         follows = _follows(current, meas, sigma, x_ref, search.alpha, load_pool, fit, chosen)
-        due = (follows or not noise_like) and not search.late("a smooth correction of what is left")
+        due = (follows or not noise_like) and not search.late(untested)
         return follows, due, apart(lambda: _drive_field(fit, chosen, x_ref, follows)) if due else None
 
-    if fit.workers > 1 and not search.late("a smooth correction of what is left"):
+    if fit.workers > 1 and not search.late(untested):
         field, (follows, due, drive) = pmap(apart, [smooth, traced], fit.workers, fit.shared)
         if not due and (follows or not noise_like):  # a worker's deadline, said here
-            search.late("a smooth correction of what is left")
+            search.late(untested)
         return follows, [field, drive] if due else []
     follows, due, drive = traced()
     return follows, [apart(smooth), drive] if due else []
