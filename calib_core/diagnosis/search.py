@@ -17,7 +17,7 @@ from ..effects.structure import session_clock, step_candidates
 from ..identify import Calibration, identify
 from ..io import Measurements
 from ..model import RobotModel
-from ..parallel import pmap
+from ..parallel import one_blas_thread, pmap
 from ..select import select_geometry
 from .evidence import ACCEPT_ALPHA, HOLDOUT_ALPHA, _better, _p, holdout_gain, holdout_ms
 from .findings import (SIGNIFICANT_STD, STRONG_STD, _beyond, _chain, _finding, _judge_sizes, _who,
@@ -405,6 +405,7 @@ class _Search:
         return True
 
 
+@one_blas_thread
 def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, repeatability_mm: float | None = None,
              loss: str | None = "auto", folds: int = 5, unexplained: bool = True,
              progress: Callable[[float, str], None] | None = None, deadline: float | None = None,

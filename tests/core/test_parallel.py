@@ -14,10 +14,11 @@ import pytest
 
 from calib_core.diagnosis import diagnose
 from calib_core.model import parse_model
-from calib_core.parallel import MAX_ITEMS, pmap
+from calib_core.parallel import MAX_ITEMS, one_blas_thread, pmap
 from calib_core.robots import spray7
 from calib_world import World
 from calib_world.scenarios import hide
+from threadpoolctl import threadpool_info, threadpool_limits
 
 
 @pytest.mark.parametrize("workers", [1, 2, 3, 5])
@@ -43,6 +44,21 @@ def test_more_items_than_the_queue_holds_are_done_in_order():
 def test_pmap_runs_parts_in_other_processes():
     pids = pmap(_slow(lambda _: os.getpid()), range(10), 2)
     assert os.getpid() in pids and len(set(pids)) == 2
+
+
+def _blas_threads(_=None) -> list[int]:
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+def test_parts_and_a_diagnosis_run_on_one_blas_thread_each():
+    """Forked parts on two BLAS threads each oversubscribe the cores (the Motoman's search ran 3x slower); the
+    caller's own count is back after."""
+    with threadpool_limits(2, user_api="blas"):
+        assert set(_blas_threads()) == {2}, threadpool_info()
+        inside = pmap(_blas_threads, range(4), workers=2)
+        assert all(set(t) == {1} for t in inside), inside
+        assert set(one_blas_thread(_blas_threads)()) == {1}
+        assert set(_blas_threads()) == {2}
 
 
 @pytest.mark.parametrize("where", ["parent", "child"])
