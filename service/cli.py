@@ -48,9 +48,17 @@ def cmd_serve(args) -> int:
     settings = Settings.from_env()
     if settings.is_sqlite:  # the embedded default: apply migrations on start
         db_upgrade(settings.database_url)
+    # uvicorn shuts down gracefully on SIGTERM, then raises the signal again under the handler it found: by default
+    # that kills the process before its exit handlers run, which left the fork server's socket directory
+    # (/tmp/pymp-*) behind at every stop. Exiting instead runs them; the status is still 143 (128 + SIGTERM).
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level.lower(),
                 timeout_graceful_shutdown=10)
     return 0
+
+
+def _exit_on_sigterm(signum: int, frame) -> None:
+    raise SystemExit(128 + signum)
 
 
 def cmd_worker(args) -> int:

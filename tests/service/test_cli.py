@@ -94,3 +94,17 @@ def test_demo_reads_local_data_with_the_same_limits_mode(tmp_path, model_doc, cs
         demo.from_files(tmp_path / "m.json", tmp_path / "d.csv", 0)
     camp = demo.from_files(tmp_path / "m.json", tmp_path / "d.csv", 0, "motion_capture", "warn")
     assert camp.cal.n_poses + camp.val.n_poses == 150 and camp.cal.instrument == "motion_capture"
+
+
+def test_a_stopped_server_leaves_nothing_in_the_temporary_directory(tmp_path):
+    """`calib serve` stopped by SIGTERM (systemd, docker stop) shuts down gracefully and then runs its exit handlers:
+    the fork server's socket directory (pymp-*) used to stay behind in /tmp at every stop."""
+    from .conftest import Server
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    s = Server(f"sqlite:///{tmp_path / 'calib.db'}", tmp_path / "server.log", TMPDIR=tmp)
+    assert [p.name for p in tmp.iterdir() if p.name.startswith("pymp-")], "the fork server's directory, while up"
+    s.stop()
+    assert s.p.returncode == 128 + 15, (s.p.returncode, s.output()[-2000:])
+    assert not list(tmp.iterdir()), list(tmp.iterdir())
