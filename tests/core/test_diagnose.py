@@ -1,6 +1,7 @@
 """Blind search for hidden causes in the independent world (calib_world): kind, joint, size and seed are drawn,
 the diagnosis must name what the physics did, with its own vocabulary (calib_world.EXPECTED)."""
 import dataclasses
+import re
 import time
 from types import SimpleNamespace
 
@@ -15,7 +16,7 @@ from calib_core.diagnosis.masses import _identify_masses
 from calib_core.diagnosis import plays as plays_module
 from calib_core.diagnosis.plays import _identified_backlash
 from calib_core.diagnosis.search import _Search
-from calib_core.effects import CyclicJointError, JointCompliance, LateralJointCompliance, candidates
+from calib_core.effects import Context, CyclicJointError, JointCompliance, LateralJointCompliance, candidates
 from calib_core.identify import CalibratedRobot, identify
 from calib_core.model import parse_model
 from calib_core.pipeline import calibrate
@@ -293,13 +294,28 @@ def test_a_step_in_the_sequence_column_is_a_model_extension(seed):
     steps = [f for f in d.findings if str(f.get("form", "")).startswith("step[")]
     assert [f["joints"] for f in steps] == [[model.joint_names[j]]], where
     first_after = int(np.searchsorted(meas.timestamp, meas.timestamp[0] + step.at_fraction * np.ptp(meas.timestamp)))
-    assert f"sequence {7.0 + 3.0 * (first_after - 0.5):g}" in steps[0]["evidence"], where
+    found = re.search(r"in time order between \S+ and \S+ \(sequence ([-\d.]+)\)", steps[0]["evidence"])
+    assert found, where
+    found_after = int(round((float(found.group(1)) - 7.0) / 3.0 + 0.5))  # the first pose it puts after the step
+    # at the step, or off only by poses the step hardly moves (seed 95767128: the first pose after it moved 1.65x the
+    # noise, and the step was placed after that pose)
+    missed = range(min(found_after, first_after), max(found_after, first_after))
+    assert all(_step_mm(world, meas, k) < 3.0 * world.noise_rms_mm(meas.joints) for k in missed), (found_after, where)
     fresh = world.sample_joints(100, np.random.default_rng((seed, 5)))
     now = dataclasses.replace(world.columns(fresh, None, False), timestamp=np.full(100, meas.timestamp[-1]))
     truth = world.true_points(fresh, now)
     err = {k: float(np.sqrt(np.mean(np.sum((c.predict(fresh, now) - truth) ** 2, axis=1))))
            for k, c in (("auto", d.calibration), ("geometric", d.geometric))}
     assert err["auto"] < 0.5 * err["geometric"], (err, where)
+
+
+def _step_mm(world, meas, k: int) -> float:
+    """How far the world's step in time order moves the point of pose k (mm): that pose before and after it."""
+    t = meas.timestamp
+    q = meas.joints[[0, k, k, -1]]
+    cols = dataclasses.replace(world.columns(q, None, False), timestamp=np.array([t[0], t[0], t[-1], t[-1]]))
+    p = world.true_points(q, cols)
+    return float(np.linalg.norm(p[2] - p[1]))
 
 
 def _burst(seed, first: int, size_mm: tuple[float, float]):
@@ -515,8 +531,12 @@ def test_the_play_search_stops_where_its_switch_has_settled(kind, seed, monkeypa
     where = (kind, info["joints"], seed, n_settled, len(calls))
     assert settled and [p.fitted_softness for p in settled] == [p.fitted_softness for p in every], where
     # a switch that still moves in the last pass never settles: then the same passes, the same plays (CI seed
-    # 858058188, soft play on J4: 14 fits either way)
-    assert n_settled < len(calls) or settled == every, where
+    # 858058188, soft play on J4: 14 fits either way) up to what the fits make of the last bits, which vary with the
+    # arrays' memory alignment (seed 116552429: one _switch call, the same inputs to the bit, two answers 1e-7 apart;
+    # the soft form of that hard play, in a flat valley, then lands up to 0.05 apart in flank, call after call)
+    ctx = Context.at(SPRAY, geo.x, meas, geo.R0)
+    assert n_settled < len(calls) or all(plays_module._flank_moved(a, b, ctx) <= 0.1
+                                         for a, b in zip(settled, every)), where
     for a, b in zip(settled, every):
         assert rss(a) <= 1.05 * rss(b), (rss(a), rss(b), where)  # benchmarks.bench_play_search: 0.996-1.025
 
