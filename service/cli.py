@@ -43,6 +43,9 @@ def _logging(level: str) -> None:
 def cmd_serve(args) -> int:
     import uvicorn
 
+    from . import processes
+
+    processes.start_early()  # its imports beside the app's own and the migrations
     from .app import create_app
 
     settings = Settings.from_env()

@@ -28,3 +28,12 @@ def context():
             else:
                 _context = mp.get_context("spawn")
         return _context
+
+
+def start_early() -> None:
+    """Start the fork server now (its imports: calib_core, numpy, scipy, about 2 s of CPU) so that it imports beside
+    the server process's own imports and migrations instead of after them, when the first process is asked for."""
+    if context().get_start_method() == "forkserver":
+        from multiprocessing import forkserver
+
+        forkserver.ensure_running()
