@@ -104,7 +104,9 @@ def test_shared_candidates_match_separate_identify(seed):
         # sigma0 to 1e-5 relative: two warm starts converged 1.5e-6 apart in it on seed 1503552731 (the estimates
         # within their tolerance above)
         assert cal.metrics()["sigma0"] == pytest.approx(ref.metrics()["sigma0"], rel=1e-5)
-        # the model error is the root of a variance beyond the noise: compare variances, to a 1e-5 share of the
-        # noise's (a 0.0065 mm error, 0.1x the noise, differed 1.3e-5 relative on seed 1688728932)
+        # the model error is the root of a variance s^2 beyond the noise's sigma^2, solved from the first fit's sum of
+        # squares: a sum within the 2e-5 share sigma0's check allows moves s^2 by up to about 2e-5 (sigma^2 + s^2).
+        # Compared to 1e-4 of the noise's variance (a 0.0065 mm error, 0.1x the noise, differed 1.3e-5 relative on
+        # seed 1688728932; a 0.027 mm one by 4.6e-8 mm^2, 1.6e-5 of the noise's variance, on seed 535517831)
         noise2 = float(np.median(meas.noise_sigma_mm())) ** 2
-        assert cal.model_error_mm**2 == pytest.approx(ref.model_error_mm**2, rel=1e-5, abs=1e-5 * noise2)
+        assert cal.model_error_mm**2 == pytest.approx(ref.model_error_mm**2, rel=1e-5, abs=1e-4 * noise2)
