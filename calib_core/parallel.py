@@ -37,8 +37,7 @@ def pmap(fn: Callable[[T], R], items: Sequence[T], workers: int = 1, shared: Seq
     k = min(max(int(workers), 1), len(items))
     if k <= 1 or not hasattr(os, "fork") or len(items) > MAX_ITEMS:
         return [fn(item) for item in items]
-    with threadpool_limits(1, user_api="blas"):  # the processes are the parallelism (see one_blas_thread)
-        return _forked(fn, items, k, shared)
+    return _forked(fn, items, k, shared)
 
 
 def one_blas_thread(fn: Callable[..., R]) -> Callable[..., R]:
@@ -53,6 +52,7 @@ def one_blas_thread(fn: Callable[..., R]) -> Callable[..., R]:
     return limited
 
 
+@one_blas_thread  # the processes are the parallelism
 def _forked(fn: Callable[[T], R], items: list[T], k: int, shared: Sequence[object]) -> list[R]:
     """pmap's work in k processes (this one and k - 1 forked children, which inherit its BLAS thread count)."""
     queue_r, queue_w = os.pipe()  # the items' indices, 4 bytes each: a read of 4 bytes takes one, atomically

@@ -84,7 +84,7 @@ def _misplaced(cal: Calibration, joints, columns: Measurements | None) -> np.nda
         return out
     meas = _columns(q, columns)
     Jq = cal.robot.chain(q, meas)[0].joint_jacobian()
-    ctx = Context(cal.model, K.Chain(cal.model, cal.basis_x, q, cal.R0, meas.labels), meas)
+    ctx = Context.at(cal.model, cal.basis_x, meas, cal.R0)
     for e, v in switches:
         if isinstance(e, SessionStep):
             P = e.misplaced(ctx)
