@@ -90,7 +90,7 @@ class _Process:
         ctx = processes.context()  # one core per call: OPENBLAS_NUM_THREADS=1
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_main, args=(child, os.getpid(), preload, nice), daemon=True, name=name)
-        self.proc.start()
+        processes.start(self.proc)
         child.close()
         self.ready = False
         self.lock = threading.Lock()  # the lane's warm-up and its slot thread may both wait for "ready"
@@ -288,6 +288,10 @@ class _Slot:
         w, timeout_s = self.lane.words, self.lane.timeout_s
         p = self.proc
         try:
+            if not p.proc.is_alive():  # died idle (with its fork server): the call was not sent, a fresh one takes it
+                log.warning("an idle %s process had died; it is replaced", w.noun)
+                self._replace()
+                p = self.proc
             if not p.wait_ready(START_TIMEOUT_S) or not p.proc.is_alive():
                 self._replace()
                 return "unavailable", f"the {w.noun} process could not start; {w.nothing}; try again"

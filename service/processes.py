@@ -3,9 +3,13 @@ scipy, the lanes' modules), so a job or lane process costs a fork instead of a f
 about a second of CPU each, seven processes per server). Where a platform has no fork server, spawn as before."""
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import os
 import threading
+import time
+
+log = logging.getLogger("service.processes")
 
 PRELOAD = ["service.fork_server", "service.queue.runner", "service.measurements.service", "service.plans.service",
            "service.calibrations.compute", "service.report.plots"]
@@ -38,3 +42,20 @@ def start_early() -> None:
         from multiprocessing import forkserver
 
         forkserver.ensure_running()
+
+
+RESTART_WAIT_S = 0.2
+"""Wait before a second start when the first met a fork server that had just died: multiprocessing starts a new one
+only once the dead one can be reaped (a job process noticed its death first, and its replacement's start read EOF)."""
+
+
+def start(proc: mp.process.BaseProcess) -> None:
+    """proc.start(), once more after RESTART_WAIT_S when the fork server died under it (an operator's kill, the OOM
+    killer): the second start brings up a new fork server, so a process that died with the old one is replaced
+    instead of failing."""
+    try:
+        proc.start()
+    except (EOFError, ConnectionError) as exc:
+        log.warning("the fork server was gone (%s); starting a new one", type(exc).__name__)
+        time.sleep(RESTART_WAIT_S)
+        proc.start()

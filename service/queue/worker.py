@@ -94,7 +94,7 @@ class Worker:
         p = self._ctx.Process(target=slot_main, name=f"calib-job-{index}", daemon=True,
                               args=(child, os.getpid(), self.settings.warm_pool, self.settings.test_poison,
                                     self.settings.job_nice))
-        p.start()
+        processes.start(p)
         child.close()
         return Slot(index, p, parent)
 

@@ -12,6 +12,9 @@
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -19,7 +22,7 @@ import httpx
 import numpy as np
 import pytest
 
-from .conftest import Server, assert_problem, wait_for
+from .conftest import ROOT, Server, assert_problem, wait_for
 
 GET_BOUND_S = 1.0
 
@@ -127,3 +130,59 @@ def test_a_diagnosis_runs_in_at_least_one_process_and_at_most_the_cores(asked, m
 
     monkeypatch.setenv("CALIB_DIAGNOSIS_WORKERS", asked)
     assert Settings.from_env().diagnosis_workers == min(max(int(asked), 1), os.cpu_count() or 1)
+
+
+def _fork_server(pid: int) -> int:
+    """The pid of the fork server `calib serve` (pid) started: its child whose command line names it."""
+    for child in open(f"/proc/{pid}/task/{pid}/children").read().split():
+        if "forkserver" in open(f"/proc/{child}/cmdline", "rb").read().decode(errors="replace"):
+            return int(child)
+    raise AssertionError("no fork server")
+
+
+def test_a_killed_fork_server_costs_no_upload_and_no_job(tmp_path, model_doc, csv_text):
+    """An operator (or the OOM killer) kills the fork server: its lane and job processes die with it. The next upload
+    is checked by a fresh lane process (before: 503 "could not start"), and a job still runs (its slot's process
+    started from a new fork server; before, that start could read EOF from the dead one)."""
+    s = Server(f"sqlite:///{tmp_path / 'calib.db'}", tmp_path / "server.log", CALIB_PARSE_PROCESSES=1)
+    try:
+        rid = s.client.post("/robots", json=model_doc).json()["id"]
+        assert s.client.post(f"/robots/{rid}/measurements", files={"file": ("a.csv", csv_text)}).status_code == 201
+        os.kill(_fork_server(s.pid), signal.SIGKILL)
+        time.sleep(0.5)  # its children see it die
+        r = s.client.post(f"/robots/{rid}/measurements", files={"file": ("b.csv", csv_text)})
+        assert r.status_code == 201, r.text
+        job = s.client.post("/jobs", json={"measurement_set_id": r.json()["id"], "model": "geometric"}).json()["id"]
+        j = wait_for(lambda: (lambda j: j if j["status"] in ("succeeded", "failed") else None)(
+            s.client.get(f"/jobs/{job}").json()), 120, "the job")
+        assert j["status"] == "succeeded", j
+        assert "Traceback" not in s.output(), s.output()[-3000:]
+    finally:
+        s.stop()
+
+
+RACE = r'''
+import os, signal, sys, time
+from multiprocessing import forkserver
+from service import processes
+processes.PRELOAD = []  # a fast restart: the race is in noticing the death, not in the imports
+if __name__ == "__main__":
+    ctx = processes.context()
+    processes.start_early()
+    codes = []
+    for _ in range(8):
+        os.kill(forkserver._forkserver._forkserver_pid, signal.SIGKILL)
+        p = ctx.Process(target=time.sleep, args=(0,))
+        processes.start(p)  # at once: the dead server not yet reaped (multiprocessing's own start read EOF 6 in 10)
+        p.join()
+        codes.append(p.exitcode)
+    print(codes)
+    sys.exit(0 if codes == [0] * 8 else 1)
+'''
+
+
+def test_a_process_starts_right_after_its_fork_server_was_killed(tmp_path):
+    script = tmp_path / "race.py"
+    script.write_text(RACE)
+    r = subprocess.run([sys.executable, str(script)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr[-3000:]
