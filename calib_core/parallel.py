@@ -17,6 +17,7 @@ import struct
 import traceback
 from typing import Callable, Iterator, Sequence, TypeVar
 
+import numpy as np
 from threadpoolctl import threadpool_limits
 
 T = TypeVar("T")
@@ -126,8 +127,15 @@ def _die_with(parent: int) -> None:
         os._exit(1)
 
 
+SPARSE_BYTES = 1 << 16
+"""Arrays of at least this many bytes whose elements are mostly zero bits go back as their nonzero elements: the
+bases a screening worker made come back to the parent's context, and an effect acting through a few joints of a
+tree is zero on the rest (Agile Justin's workers pickled 134 MB of them, most of it zeros)."""
+
+
 class _Pickler(pickle.Pickler):
-    """Pickles the shared objects as their ids: a forked child's objects from before the fork have the parent's."""
+    """Pickles the shared objects as their ids (a forked child's objects from before the fork have the parent's), and
+    large mostly-zero arrays by their nonzero elements (the same bits back: -0.0 is not zero here)."""
 
     def __init__(self, f, shared: Sequence[object]):
         super().__init__(f, protocol=pickle.HIGHEST_PROTOCOL)
@@ -135,6 +143,28 @@ class _Pickler(pickle.Pickler):
 
     def persistent_id(self, obj):
         return id(obj) if id(obj) in self.ids else None
+
+    def reducer_override(self, obj):
+        if type(obj) is not np.ndarray or obj.nbytes < SPARSE_BYTES or obj.dtype != np.float64:
+            return NotImplemented
+        order = "F" if obj.flags.f_contiguous and not obj.flags.c_contiguous else "C"  # as numpy pickles it
+        flat = obj.ravel(order)
+        nz = np.flatnonzero(flat)
+        if len(nz) > flat.size // 4:
+            return NotImplemented
+        negative = np.packbits(np.signbit(flat))  # a zero's sign too (products leave many -0.0): the same bits
+        return _from_nonzero, (obj.shape, order, nz.astype(np.int32 if flat.size < 2**31 else np.int64), flat[nz],
+                               negative)
+
+
+def _from_nonzero(shape: tuple, order: str, nz: np.ndarray, values: np.ndarray, negative: np.ndarray) -> np.ndarray:
+    """The float64 array of `shape` (memory `order`) that is `values` at the flat indices nz and a zero elsewhere, -0.0
+    where the packed sign bits say so."""
+    size = int(np.prod(shape))
+    flat = np.zeros(size)
+    flat[np.unpackbits(negative, count=size).astype(bool)] = -0.0
+    flat[nz] = values
+    return flat.reshape(shape, order=order)
 
 
 class _Unpickler(pickle.Unpickler):
