@@ -373,11 +373,11 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
                 p, J = evals(x)
                 return y - p, J[:, :, idx]
             chain = K.Chain(model, x, q, R0, labels)
-            return y - chain.p, chain.jacobian()[:, :, idx]
+            return y - chain.p, np.ascontiguousarray(chain.jacobian_columns(idx))
         theta = xs[p_geo:p_geo + K_eff]
         chain = K.Chain(model, x, q + through.shift(theta), R0, labels)
         J = np.empty((p_geo + K_eff, len(q), 3))  # parameters first, as Chain.jacobian lays them out: no transposes
-        np.take(chain.jacobian().transpose(2, 0, 1), idx, axis=0, out=J[:p_geo])
+        chain.jacobian_columns(idx, out=J[:p_geo])
         through.columns(chain.joint_jacobian(), out=J[p_geo:])
         return y - chain.p - bases[1] @ theta, J.transpose(1, 2, 0)
 
@@ -643,7 +643,7 @@ def _one_step_folds(model, meas, sigma, x0, R0, idx, loss, regularize, folds, ba
     x[idx] = start[:p_geo]
     theta = start[p_geo:]
     chain = K.Chain(model, x, q + Phi_q @ theta, R0, labels)
-    J = np.concatenate([chain.jacobian()[:, :, idx], (chain.joint_jacobian() @ Phi_q)
+    J = np.concatenate([chain.jacobian_columns(idx), (chain.joint_jacobian() @ Phi_q)
                         + Phi_p], axis=2)
     _, prior = _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior, Phi_q.shape[2])
     out = np.empty(meas.n_poses)

@@ -41,14 +41,14 @@ def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None =
     model = cal.model
     labels = None if columns is None else columns.labels
     if not cal.effects and not extra:
-        return K.Chain(model, cal.x, q, cal.R0, labels).jacobian()[:, :, cal.free]
+        return np.ascontiguousarray(K.Chain(model, cal.x, q, cal.R0, labels).jacobian_columns(cal.free))
     meas = _columns(q, columns)
     Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects) + list(extra), cal.basis_x, cal.R0)
     theta = cal.solution.x[len(cal.free):]
     k = len(theta)
     chain = K.Chain(model, cal.x, q + Phi_q[:, :, :k] @ theta, cal.R0, labels)
     J_eff = np.einsum("nij,njk->nik", chain.joint_jacobian(), Phi_q) + Phi_p
-    return np.concatenate([chain.jacobian()[:, :, cal.free], J_eff], axis=2)
+    return np.concatenate([chain.jacobian_columns(cal.free), J_eff], axis=2)
 
 
 def prediction_cov(cal: Calibration, joints, columns: Measurements | None = None) -> np.ndarray:

@@ -154,3 +154,28 @@ def test_chain_matches_a_product_of_transforms_on_chains_trees_and_setups(seed):
         again = chain.o_beta[chain.end_row, idx] + np.einsum("nab,nb->na", chain.R[chain.end_row, idx], tools)
         assert np.abs(again - ref).max() < 1e-9 * max(1.0, np.abs(ref).max())
         assert np.allclose(np.einsum("rnab,rnac->rnbc", chain.R, chain.R), np.eye(3), atol=1e-12)  # rotations
+
+
+def test_the_columns_asked_for_are_the_full_jacobians_to_the_bit(seed):
+    """Chain.jacobian_columns (a fit's free parameters only) against jacobian()[:, :, idx]: the same bits, on serial
+    chains and on the tree with fixed rows, a coupled joint, two targets and three setups, for drawn subsets (each
+    kind of row parameter, bases, tools), and into a given buffer."""
+    from .test_tree import torso_two_arms
+
+    rng = np.random.default_rng(seed)
+    for model in _models(seed) + [parse_model(torso_two_arms())]:
+        S = 1 if model.n_targets == 1 else 3
+        x = K.nominal_vector(model, np.c_[rng.uniform(-2000, 2000, (S, 3)), rng.uniform(-0.3, 0.3, (S, 3))], S)
+        x = x + rng.normal(0, 1e-2, len(x))
+        q = sample_uniform(model, 40, rng)
+        labels = K.Labels(rng.integers(0, model.n_targets, 40), np.arange(40) % S) if S > 1 else None
+        chain = K.Chain(model, x, q, None, labels)
+        full = chain.jacobian()
+        for share in (0.1, 0.5, 1.0):
+            idx = np.flatnonzero(rng.random(len(x)) < share)
+            got = chain.jacobian_columns(idx)
+            assert got.shape == (40, 3, len(idx))
+            assert np.array_equal(got.view(np.uint64), np.ascontiguousarray(full[:, :, idx]).view(np.uint64))
+        buf = np.full((len(idx), 40, 3), np.nan)
+        assert chain.jacobian_columns(idx, out=buf).base is buf and np.array_equal(buf.transpose(1, 2, 0),
+                                                                                  full[:, :, idx])
