@@ -373,7 +373,7 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
                 p, J = evals(x)
                 return y - p, J[:, :, idx]
             chain = K.Chain(model, x, q, R0, labels)
-            return y - chain.p, np.ascontiguousarray(chain.jacobian_columns(idx))
+            return y - chain.p, chain.jacobian_columns(idx)
         theta = xs[p_geo:p_geo + K_eff]
         chain = K.Chain(model, x, q + through.shift(theta), R0, labels)
         J = np.empty((p_geo + K_eff, len(q), 3))  # parameters first, as Chain.jacobian lays them out: no transposes

@@ -400,90 +400,85 @@ class Chain:
             out = np.empty((lay.size, N, 3))
             J = _first(out)
         cols = J[:, : G * n].reshape(3, n, G, *lead, N)
-        p = self._p[:, None]
-        x_prev, z_axis = self._x_prev.swapaxes(0, 1), self._z_axis.swapaxes(0, 1)  # (3, n, N)
-        cols[:, :, 0] = x_prev  # a_{i-1}: translation along x_{i-1}
-        _cross_into(cols[:, :, 1], x_prev, p - self._o_prev.swapaxes(0, 1))  # alpha_{i-1}
-        cols[:, :, 2] = z_axis  # d_i
-        _cross_into(cols[:, :, 3], z_axis, p - self._o_theta.swapaxes(0, 1))  # theta_i
-        _cross_into(cols[:, :, 4], self._y_beta.swapaxes(0, 1), p - self._o_beta.swapaxes(0, 1))  # beta_i
-        y_prev = self._y_prev.swapaxes(0, 1)
-        _cross_into(cols[:, :, 5], y_prev, p - self._o_theta.swapaxes(0, 1))  # gamma_i: about y, through the axis
-        cols[:, :, 6] = y_prev  # b_i: translation along y
+        for g in range(G):
+            self._row_columns(g, slice(None), cols[:, :, g])
         if not _static(self.model).serial:
             cols *= self.on_path.reshape(n, 1, *(1,) * len(lead), N)
-        turns = np.array([axes for _, axes in self._frames]).reshape(*lead, lay.n_setups, 3, 3)
         for s in range(lay.n_setups):
-            axes = turns[..., s, :, :]  # ([B,] 3, 3): the world axes of rx, ry, rz
-            rx_axis, ry_axis, rz_axis = (_first(axes[..., k, :])[..., None] for k in range(3))  # (3, [B,] 1)
-            dp = self._p - _first(self.bases[..., s, :3])[..., None]
-            b = J[:, lay.base(s)]
-            b[:, :3] = 0.0
-            b[0, 0] = b[1, 1] = b[2, 2] = 1.0
-            _cross_into(b[:, 3], rx_axis, dp)
-            _cross_into(b[:, 4], ry_axis, dp)
-            _cross_into(b[:, 5], rz_axis, dp)
-            if lay.n_setups > 1:
-                b *= self.setup == s
+            self._base_columns(s, J[:, lay.base(s)])
         for t in range(lay.n_targets):
-            tc = J[:, lay.tool(t)]
-            tc[:] = self._R_end.swapaxes(0, 1)  # d p_c / d tool_k: axis k's component c
-            if lay.n_targets > 1:
-                tc *= self.target == t
+            self._tool_columns(t, J[:, lay.tool(t)])
         return out.transpose(*range(1, out.ndim), 0)
 
     def jacobian_columns(self, idx: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """jacobian()[:, :, idx] for one parameter vector, computing those columns alone (a fit's free parameters:
-        Agile Justin's 76 of 173, Hilti's 65 of 157), each by the same arithmetic as in jacobian(): the same bits.
-        out: a (len(idx), N, 3) array to fill (parameters first, as jacobian() lays them out); returned as its
-        (N, 3, len(idx)) view."""
+        Agile Justin's 76 of 173, Hilti's 65 of 157), each by the same arithmetic as jacobian(): the same bits.
+        Returned (N, 3, len(idx)) C-contiguous, as jacobian()[:, :, idx] is; or written into `out`, a
+        (len(idx), N, 3) array (parameters first, as jacobian() lays them out), and returned as its (N, 3, len(idx))
+        view."""
         if self._p.ndim != 2:
             raise ValueError("jacobian_columns takes one parameter vector; jacobian() takes several")
         n, N, lay = self.model.n_joints, self.N, self.layout
         idx = np.asarray(idx, int)
-        out = np.empty((len(idx), N, 3)) if out is None else out
-        J = _first(out)  # (3, len(idx), N)
-        p = self._p[:, None]
+        if out is None:
+            res = np.empty((N, 3, len(idx)))
+            J = res.transpose(1, 2, 0)  # (3, len(idx), N)
+        else:
+            res, J = out.transpose(1, 2, 0), _first(out)
         serial = _static(self.model).serial
         rows = idx < G * n
-        for g in range(G):  # the rows' columns of one kind (a_{i-1}, alpha_{i-1}, d_i, theta_i, beta_i, gamma_i, b_i)
+        for g in range(G):
             mine = rows & (idx % G == g)
-            if not mine.any():
-                continue
-            j = idx[mine] // G
-            if g in (0, 2, 6):  # translations along x_{i-1}, z_i, y_{i-1}
-                col = (self._x_prev if g == 0 else self._z_axis if g == 2 else self._y_prev)[j].swapaxes(0, 1)
-            else:
-                axis, origin = {1: (self._x_prev, self._o_prev), 3: (self._z_axis, self._o_theta),
-                                4: (self._y_beta, self._o_beta), 5: (self._y_prev, self._o_theta)}[g]
-                col = _cross_into(np.empty((3, len(j), N)), axis[j].swapaxes(0, 1), p - origin[j].swapaxes(0, 1))
-            J[:, mine] = col if serial else col * self.on_path[j]
+            if mine.any():
+                j = idx[mine] // G
+                col = self._row_columns(g, j, np.empty((3, len(j), N)))
+                J[:, mine] = col if serial else col * self.on_path[j]
         for s in range(lay.n_setups):
             mine = (idx >= lay.base(s).start) & (idx < lay.base(s).stop)
             if mine.any():
-                J[:, mine] = self._base_block(s)[:, idx[mine] - lay.base(s).start]
+                J[:, mine] = self._base_columns(s, np.empty((3, 6, N)))[:, idx[mine] - lay.base(s).start]
         for t in range(lay.n_targets):
             mine = (idx >= lay.tool(t).start) & (idx < lay.tool(t).stop)
             if mine.any():
-                tc = np.array(self._R_end.swapaxes(0, 1))  # (3 components, 3 axes, N)
-                if lay.n_targets > 1:
-                    tc *= self.target == t
-                J[:, mine] = tc[:, idx[mine] - lay.tool(t).start]
-        return out.transpose(1, 2, 0)
+                J[:, mine] = self._tool_columns(t, np.empty((3, 3, N)))[:, idx[mine] - lay.tool(t).start]
+        return res
 
-    def _base_block(self, s: int) -> np.ndarray:
-        """Setup s's base columns (3, 6, N) as jacobian() writes them: translations, then the turns about the world
-        axes rx, ry, rz (zero on the other setups' poses)."""
-        _, axes = self._frames[s]
-        b = np.zeros((3, 6, self.N))
+    _ROW_KINDS = (("_x_prev", None), ("_x_prev", "_o_prev"), ("_z_axis", None), ("_z_axis", "_o_theta"),
+                  ("_y_beta", "_o_beta"), ("_y_prev", "_o_theta"), ("_y_prev", None))
+    """Per row parameter (a_{i-1}, alpha_{i-1}, d_i, theta_i, beta_i, gamma_i, b_i): the axis it translates along, or
+    turns about through the origin given (gamma_i about y through the joint axis)."""
+
+    def _row_columns(self, g: int, rows, out: np.ndarray) -> np.ndarray:
+        """The columns of row parameter kind g for `rows` (a slice or indices), components first (3, rows, [B,] N),
+        written into out."""
+        axis, origin = (getattr(self, a) if a else None for a in self._ROW_KINDS[g])
+        if origin is None:
+            out[...] = axis[rows].swapaxes(0, 1)
+        else:
+            _cross_into(out, axis[rows].swapaxes(0, 1), self._p[:, None] - origin[rows].swapaxes(0, 1))
+        return out
+
+    def _base_columns(self, s: int, b: np.ndarray) -> np.ndarray:
+        """Setup s's base columns (3, 6, [B,] N) written into b: translations, then the turns about the world axes rx,
+        ry, rz (zero on the other setups' poses)."""
+        lead, S = self._p.shape[1:-1], self.layout.n_setups
+        axes = np.array([a for _, a in self._frames]).reshape(*lead, S, 3, 3)[..., s, :, :]  # the world axes
+        dp = self._p - _first(self.bases[..., s, :3])[..., None]
+        b[:, :3] = 0.0
         b[0, 0] = b[1, 1] = b[2, 2] = 1.0
-        dp = self._p - _first(self.bases[s, :3])[..., None]
         for k in range(3):
-            _cross_into(b[:, 3 + k], _first(axes[k, :])[..., None], dp)
-        if self.layout.n_setups > 1:
+            _cross_into(b[:, 3 + k], _first(axes[..., k, :])[..., None], dp)
+        if S > 1:
             b *= self.setup == s
         return b
 
+    def _tool_columns(self, t: int, tc: np.ndarray) -> np.ndarray:
+        """Target t's tool columns (3, 3, [B,] N) written into tc: d p_c / d tool_k is axis k's component c (zero on
+        the other targets' poses)."""
+        tc[:] = self._R_end.swapaxes(0, 1)
+        if self.layout.n_targets > 1:
+            tc *= self.target == t
+        return tc
 
 _EYE4 = np.eye(4)
 

@@ -41,7 +41,7 @@ def prediction_jacobian(cal: Calibration, joints, columns: Measurements | None =
     model = cal.model
     labels = None if columns is None else columns.labels
     if not cal.effects and not extra:
-        return np.ascontiguousarray(K.Chain(model, cal.x, q, cal.R0, labels).jacobian_columns(cal.free))
+        return K.Chain(model, cal.x, q, cal.R0, labels).jacobian_columns(cal.free)
     meas = _columns(q, columns)
     Phi_q, Phi_p = effect_bases(model, meas, list(cal.effects) + list(extra), cal.basis_x, cal.R0)
     theta = cal.solution.x[len(cal.free):]

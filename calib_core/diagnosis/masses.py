@@ -218,7 +218,7 @@ def _tilt_scan(t: Calibration, effects: list[Effect], idx: list[int], meas: Meas
     chain, dp = t.robot.chain(meas.joints, meas)
     ctx = Context.at(model, t.basis_x, meas, t.R0)
     Jq = chain.joint_jacobian()
-    geometry = (np.ascontiguousarray(chain.jacobian_columns(t.free)) / sigma[:, None, None]).reshape(3 * len(sigma), -1)
+    geometry = (chain.jacobian_columns(t.free) / sigma[:, None, None]).reshape(3 * len(sigma), -1)
     others = [_weighted_columns(e, ctx, Jq, sigma)[0] for i, e in enumerate(effects) if i not in idx]
     Q = orthonormal_basis(np.concatenate([geometry] + others, axis=1))
 

@@ -80,7 +80,7 @@ def _weighted_system_of(cal: Calibration, meas: Measurements, sigma: np.ndarray,
     model = cal.model
     chain, dp = cal.robot.chain(meas.joints, meas)
     r = (meas.points - chain.p - dp) / sigma[:, None]
-    cols = [np.ascontiguousarray(chain.jacobian_columns(cal.free))]
+    cols = [chain.jacobian_columns(cal.free)]
     if cal.effects:
         Pq, Pp = effect_bases(model, meas, list(cal.effects), x_ref if cal.x_basis is None else cal.x_basis, cal.R0)
         cols.append((chain.joint_jacobian() @ Pq) + Pp)
