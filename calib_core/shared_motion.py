@@ -16,7 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 from .io import Measurements
 from .kinematics import Chain, _cross
@@ -81,6 +80,8 @@ def shared_motion(chain: Chain, meas: Measurements, residual_mm: np.ndarray, sig
     measured minus predicted; sigma (N,) the fit's 1-sigma per coordinate; Q (3N, r) an orthonormal basis of the
     fit's weighted Jacobian (rows pose-major). Every motion tried, largest share first; None when fewer than
     MIN_POSES poses have two targets."""
+    from scipy import stats  # here, not at the top: 0.5 s of import a process that never diagnoses (the API's) skips
+
     groups = pose_groups(meas, chain.model)
     if len(groups) < MIN_POSES:
         return None

@@ -11,7 +11,6 @@ world `calib_world` (its own kinematics, statics and noise), which is what the d
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from . import kinematics as K
 from .identifiability import analyse, model_order
@@ -83,6 +82,8 @@ class Twin:
         x[mask] += rng.normal(0.0, err[mask])
         x[lay.tools] += rng.normal(0.0, tool_error_mm, 3 * model.n_targets)
         x[lay.bases.start: lay.bases.start + 3] = rng.uniform(-3000.0, 3000.0, 3)  # tracker a few metres away
+        from scipy.spatial.transform import Rotation  # here: scipy.spatial is 0.15 s of import that the API process skips
+
         self.R0 = Rotation.random(random_state=rng).as_matrix()
         self.x_true = x
         self.repeatability_mm = repeatability_mm

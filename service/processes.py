@@ -12,10 +12,12 @@ import time
 log = logging.getLogger("service.processes")
 
 PRELOAD = ["service.fork_server", "service.queue.runner", "service.measurements.service", "service.plans.service",
-           "service.calibrations.compute", "service.report.plots"]
+           "service.calibrations.compute", "service.report.plots", "scipy.optimize", "scipy.stats",
+           "scipy.spatial.transform"]
 """The fork server's signals (fork_server.py), then the modules the job processes and the lanes (lanes.py) import
 before their first call (a job process draws its answer's plots: matplotlib, 0.8 s of CPU, imported once per server
-instead of once per job process)."""
+instead of once per job process), and the parts of scipy that calib_core imports where it uses them (a diagnosis, a
+twin), which the API process, parsing and answering, never does."""
 
 _lock = threading.Lock()
 _context = None

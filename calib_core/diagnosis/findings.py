@@ -3,7 +3,6 @@ presented from the final parameter table, and given per-cause figures that chain
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 from ..effects import Effect, SessionStep
 from ..effects.structure import ORDER_NAMES
@@ -192,6 +191,8 @@ def _jointly_beyond(cal: Calibration, names: list[str]) -> bool | None:
     v, C = cal.solution.x[idx], cov[np.ix_(idx, idx)]
     d = np.sqrt(np.maximum(C.diagonal(), 1e-300))
     z2 = float((v / d) @ np.linalg.lstsq(C / np.outer(d, d), v / d, rcond=1e-12)[0])
+    from scipy import stats  # here: scipy.stats is 0.5 s of import that the API process (no diagnosis) skips
+
     return bool(stats.chi2.sf(z2, len(idx)) < 2 * stats.norm.sf(SIGNIFICANT_STD))
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from .. import kinematics as K
 from ..effects import Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, TiltedCompliance
@@ -75,7 +75,7 @@ MASS_TOL = 0.01
 """The steps stop when no body's mass moves by more than this share of the mean body mass..."""
 TILT_TOL_RAD = 1e-4
 """...and gravity's direction by less than this."""
-MASS_DROP = float(stats.chi2.ppf(0.99, 1))
+MASS_DROP = float(2.0 * special.gammaincinv(0.5, 0.99))  # chi2.ppf(0.99, 1), scipy.stats' arithmetic
 """...or when two steps in a row each lower the weighted misfit (chi-square units) by less than one parameter could at
 1 %: on Agile Justin the steps crawl along a valley where the tilt trades with the first moments, 2-4 units a step
 for the last six of twelve (10 s of its 34; now 5-7 steps per start, held out the same: 3.553 -> 3.549 mm on split 0).

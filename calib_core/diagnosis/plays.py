@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy import optimize, special, stats
+from scipy import special
 
 from .. import kinematics as K
 from ..effects import Backlash, Context, Effect, JointCompliance, has_loads, loads
@@ -180,7 +180,7 @@ def _refold_candidate(cal: Calibration, meas: Measurements, e: Effect, ctx: Cont
 
 SWITCH_WIDTHS = np.r_[0.0, np.logspace(-4, 0, 41)]
 """The switch widths tried, as shares of the largest |load| on the calibration poses (0: no doubt at all)."""
-SWITCH_LR = 0.5 * stats.chi2.ppf(0.95, 1)
+SWITCH_LR = 0.5 * (2.0 * special.gammaincinv(0.5, 0.95))  # chi2.ppf(0.95, 1), scipy.stats' arithmetic
 """Log-likelihood drop that bounds the width from above (95 % profile likelihood): a few calibration poses near
 the switch cannot show that none is ever on the far flank, so the widest width they allow is taken."""
 
@@ -202,6 +202,8 @@ def _switch_width(e: Backlash, b: float, load: np.ndarray, off: np.ndarray, weig
         else:
             nodes, weight = LOAD_DOUBT
             where, weight = e.flank(load + width * nodes[:, None]), weight[:, None]
+        from scipy import stats  # here: scipy.stats is 0.5 s of import that the API process (no diagnosis) skips
+
         return float(special.logsumexp(stats.norm.logpdf(off, half * where, sd), b=weight, axis=0).sum())
 
     widths = SWITCH_WIDTHS * np.abs(load).max()
@@ -325,6 +327,8 @@ def _minpack_lm(fun: Callable, jac: Callable, p0: np.ndarray, max_nfev: int) -> 
     """MINPACK's Levenberg-Marquardt (lmder) from p0, as scipy's least_squares(method="lm") runs it with its default
     tolerances, without that front's per-evaluation wrappers (the play search's small fits spent 2/3 of their time
     in them). The same iterates: 321 of the Motoman's 322 fits gave identical answers."""
+    from scipy import optimize  # here: scipy.optimize is 0.6 s of import that the API process skips
+
     return optimize.leastsq(fun, p0, Dfun=jac, full_output=True, ftol=1e-8, xtol=1e-8, gtol=1e-8, maxfev=max_nfev,
                             factor=100.0, diag=None)[0]
 

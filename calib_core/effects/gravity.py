@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..kinematics import _cross
 from ..statics import gravity_moments, gravity_world
@@ -383,6 +382,8 @@ def tilt_axes(g: np.ndarray) -> np.ndarray:
 
 def tilted(g, tilt) -> np.ndarray:
     """Gravity g (3,) m/s^2 turned by the tilts (2,) rad about tilt_axes(g)."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial is 0.15 s of import that the API process skips
+
     return Rotation.from_rotvec(np.asarray(tilt, float) @ tilt_axes(g)).apply(np.asarray(g, float))
 
 
