@@ -22,9 +22,9 @@ from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from . import problems
 from .calibrations.compute import COMPUTERS, ROOM_PER_PROCESS
 from .calibrations.router import router as calibrations_router
-from .config import Settings
+from .config import Settings, check_token_setting
 from .db import Database, DatabaseUnavailable
-from .deps import TokenAuthMiddleware, check_token_setting
+from .deps import TokenAuthMiddleware
 from .jobs.models import Job
 from .jobs.router import router as jobs_router
 from .limits import (MAX_PREDICT_BYTES, MAX_PREDICT_ROWS, BatchLimitMiddleware, BodyLimitMiddleware, HeadMiddleware,
@@ -75,7 +75,7 @@ class Health(BaseModel):
 
 def create_app(settings: Settings | None = None, *, dispatcher: bool | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
-    check_token_setting(settings)  # CALIB_API_TOKEN set but empty: refuse to start (deps.py)
+    check_token_setting(settings)  # CALIB_API_TOKEN set but empty: refuse to start (config.py)
     run_dispatcher = settings.embedded_workers if dispatcher is None else dispatcher
 
     @asynccontextmanager

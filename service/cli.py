@@ -41,6 +41,10 @@ def _logging(level: str) -> None:
 
 
 def cmd_serve(args) -> int:
+    from .config import check_token_setting
+
+    settings = Settings.from_env()
+    check_token_setting(settings)  # a setting it refuses: at once, before any import or process
     import uvicorn
 
     from . import processes
@@ -48,7 +52,6 @@ def cmd_serve(args) -> int:
     processes.start_early()  # its imports beside the app's own and the migrations
     from .app import create_app
 
-    settings = Settings.from_env()
     if settings.is_sqlite:  # the embedded default: apply migrations on start
         db_upgrade(settings.database_url)
     # uvicorn shuts down gracefully on SIGTERM, then raises the signal again under the handler it found: by default

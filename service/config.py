@@ -112,3 +112,19 @@ class Settings:
     @property
     def is_sqlite(self) -> bool:
         return self.database_url.startswith("sqlite")
+
+
+class ConfigurationError(SystemExit):
+    """A setting the service refuses to start with; the message is printed and the process exits with 1."""
+
+
+def check_token_setting(settings: Settings) -> None:
+    """Refuse CALIB_API_TOKEN set to nothing (or white space): it would silently switch authentication off."""
+    token = settings.api_token
+    if (token is None and settings.api_token_set) or (token is not None and not token.strip()):
+        raise ConfigurationError("calib: CALIB_API_TOKEN is set but empty: refusing to start without the "
+                                 "authentication it asks for. Set it to a token, or unset it (unset, the API "
+                                 "asks for no token).")
+    if token is not None and token != token.strip():
+        raise ConfigurationError("calib: CALIB_API_TOKEN starts or ends with white space, which an HTTP header "
+                                 "cannot carry (no client could authenticate): remove it.")

@@ -7,7 +7,7 @@ the scheme in the OpenAPI. The token goes as `Authorization: Bearer <token>`, or
 Basic (any user name) so a browser can open /docs and the reports. Tokens are compared as UTF-8 bytes on both
 sides, in constant time: a non-ASCII token works when the client sends it UTF-8 encoded. Set but empty (or
 only white space, or with white space around it, which no HTTP header can carry) is a misconfiguration:
-`check_token_setting` refuses to start rather than silently run without auth.
+`config.check_token_setting` refuses to start (before any import or process) rather than silently run without auth.
 """
 from __future__ import annotations
 
@@ -36,22 +36,6 @@ bearer = HTTPBearer(auto_error=False, description="Needed on every call but /hea
 AUTH_CHALLENGE = 'Bearer realm="calib", Basic realm="calib", charset="UTF-8"'
 AUTH_DETAIL = ("this service needs 'Authorization: Bearer <token>' (CALIB_API_TOKEN) on every call but /health; "
                "a browser may give the token as the password of HTTP Basic")
-
-
-class ConfigurationError(SystemExit):
-    """A setting the service refuses to start with; the message is printed and the process exits with 1."""
-
-
-def check_token_setting(settings: Settings) -> None:
-    """Refuse CALIB_API_TOKEN set to nothing (or white space): it would silently switch authentication off."""
-    token = settings.api_token
-    if (token is None and settings.api_token_set) or (token is not None and not token.strip()):
-        raise ConfigurationError("calib: CALIB_API_TOKEN is set but empty: refusing to start without the "
-                                 "authentication it asks for. Set it to a token, or unset it (unset, the API "
-                                 "asks for no token).")
-    if token is not None and token != token.strip():
-        raise ConfigurationError("calib: CALIB_API_TOKEN starts or ends with white space, which an HTTP header "
-                                 "cannot carry (no client could authenticate): remove it.")
 
 
 def _digest(b: bytes) -> bytes:
