@@ -1,7 +1,8 @@
 """Independent parts of one computation in forked processes: a diagnosis's play searches per joint, its rival
 fits, its two mass-data paths. Each part is a function of what the parent holds when it forks (nothing is sent but
 the answer, pickled back through a pipe), so the answers are those of running the parts in order, which is what
-one worker does (and what a platform without fork does).
+one worker does (and what a platform without fork does), to rounding: a part done in another process allocates its
+arrays at other addresses, and numpy's SIMD sums follow memory alignment (a diagnosis's x can move by 1e-12 mm).
 
 Plain os.fork, not multiprocessing: a service job runs in a daemonic process, which multiprocessing forbids to
 have children. A child dies with its parent (Linux)."""

@@ -25,7 +25,7 @@ def calibrate(model: RobotModel, meas: Measurements, mode: str = "geometric",
     and whether calibration helps); 'auto' also diagnoses the residual and extends the model with every
     cause it finds (the answer then carries the contract's `diagnosis` block). `deadline` (time.monotonic()):
     past it the diagnosis fits no further model and answers with what it has confirmed (see diagnose). `workers`:
-    processes for the diagnosis's independent parts (the same answer as one).
+    processes for the diagnosis's independent parts (the same answer as one, to rounding).
     """
     if mode not in MODES:
         raise ValueError(f"unknown model {mode!r}; use one of {MODES}")

@@ -70,6 +70,8 @@ class Twin:
     ):
         """error_scale multiplies the Table 4 magnitudes; all_parameters puts errors on redundant
         parameters too (physically more honest, but then only predictions, not values, can be compared)."""
+        from scipy.spatial.transform import Rotation  # here: 0.15 s of import that the API process skips
+
         self.model = model
         self.rng = np.random.default_rng(seed)
         rng = self.rng
@@ -82,8 +84,6 @@ class Twin:
         x[mask] += rng.normal(0.0, err[mask])
         x[lay.tools] += rng.normal(0.0, tool_error_mm, 3 * model.n_targets)
         x[lay.bases.start: lay.bases.start + 3] = rng.uniform(-3000.0, 3000.0, 3)  # tracker a few metres away
-        from scipy.spatial.transform import Rotation  # here: scipy.spatial is 0.15 s of import that the API process skips
-
         self.R0 = Rotation.random(random_state=rng).as_matrix()
         self.x_true = x
         self.repeatability_mm = repeatability_mm

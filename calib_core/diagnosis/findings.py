@@ -181,6 +181,8 @@ def _jointly_beyond(cal: Calibration, names: list[str]) -> bool | None:
     """The parameters `names` of cal's effects, together, are beyond SIGNIFICANT_STD std of zero (the chi-square of
     the vector with its covariance against the two-sided tail of that many std); None where the covariance is not
     known. A telescopic stage's bending and its guide's turn trade (each within 2 std, the pair at p = 1e-20)."""
+    from scipy import stats  # here: scipy.stats is 0.5 s of import that the API process (no diagnosis) skips
+
     cov = cal.solution.cov
     if cov is None:
         return None
@@ -191,8 +193,6 @@ def _jointly_beyond(cal: Calibration, names: list[str]) -> bool | None:
     v, C = cal.solution.x[idx], cov[np.ix_(idx, idx)]
     d = np.sqrt(np.maximum(C.diagonal(), 1e-300))
     z2 = float((v / d) @ np.linalg.lstsq(C / np.outer(d, d), v / d, rcond=1e-12)[0])
-    from scipy import stats  # here: scipy.stats is 0.5 s of import that the API process (no diagnosis) skips
-
     return bool(stats.chi2.sf(z2, len(idx)) < 2 * stats.norm.sf(SIGNIFICANT_STD))
 
 

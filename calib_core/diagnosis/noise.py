@@ -77,9 +77,9 @@ def _unmodelled_mm(cal: Calibration, floor: float, structure_left: bool) -> floa
 
 def _excess(cal: Calibration, floor: float) -> float:
     """p-value that the held-out residual is no larger than the noise floor (chi-square on 3N)."""
+    from scipy import stats  # here: scipy.stats is 0.5 s of import that the API process (no diagnosis) skips
+
     h = cal.holdout_residual_mm[cal.inliers()]
     N = len(h)
     T = float((h**2).sum() / (floor**2 / 3.0) / _holdout_inflation(cal, N))
-    from scipy import stats  # here: scipy.stats is 0.5 s of import that the API process (no diagnosis) skips
-
     return float(stats.chi2.sf(T, 3 * N))

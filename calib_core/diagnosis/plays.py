@@ -191,6 +191,8 @@ def _switch_width(e: Backlash, b: float, load: np.ndarray, off: np.ndarray, weig
     the joint's offset (weight 1 / variance) b/2 flank(load + doubt) plus its noise. Mass data 15 % off put a few
     poses near the switch on the far flank, and fresh poses there are off by the whole play (a spray7 twin: 0.6 mm
     at a std of 0.02 mm)."""
+    from scipy import stats  # here: scipy.stats is 0.5 s of import that the API process (no diagnosis) skips
+
     half, sd = 0.5 * b, 1.0 / np.sqrt(np.maximum(weight, 1e-300))
 
     def loglik(width: float) -> float:
@@ -202,8 +204,6 @@ def _switch_width(e: Backlash, b: float, load: np.ndarray, off: np.ndarray, weig
         else:
             nodes, weight = LOAD_DOUBT
             where, weight = e.flank(load + width * nodes[:, None]), weight[:, None]
-        from scipy import stats  # here: scipy.stats is 0.5 s of import that the API process (no diagnosis) skips
-
         return float(special.logsumexp(stats.norm.logpdf(off, half * where, sd), b=weight, axis=0).sum())
 
     widths = SWITCH_WIDTHS * np.abs(load).max()

@@ -418,7 +418,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     deadline: a time.monotonic() value after which the search fits no further model and the answer is finished
     with what it has confirmed so far (`Diagnosis.untested` says what was left; thousands of poses can take longer
     than a job may run). workers: processes for the search's independent parts (the play search per joint, rival
-    fits, the mass data's two starts; calib_core.parallel), the same answer as one.
+    fits, the mass data's two starts; calib_core.parallel), the same answer as one (its numbers to rounding:
+    calib_core.parallel).
 
     loss 'auto' fits with the Huber loss when a first robust fit names outliers (the final model's are listed), else
     with plain least squares; poses flagged in runs of consecutive measurements, none absurdly far off, are

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from calib_core.diagnosis import diagnose
+from calib_core.diagnosis.masses import _mass_driven
 from calib_core.model import parse_model
 from calib_core.parallel import MAX_ITEMS, one_blas_thread, pmap
 from calib_core.robots import spray7
@@ -176,7 +177,12 @@ def _alive(pid: int) -> bool:
 
 def test_a_diagnosis_in_two_processes_gives_the_answer_of_one():
     """Drawn: the seed, a play (its search runs per joint apart), a spring (rival fits apart) or a cable pulled by a
-    joint (nothing named: the smooth field fitted beside the search for what the residual follows), its size."""
+    joint (nothing named: the smooth field fitted beside the search for what the residual follows), its size.
+
+    The same findings and prose; the numbers to rounding, not always to the bit: a part done in a forked process
+    allocates its arrays at other addresses, and numpy's SIMD sums follow memory alignment (a hard play: x differed by
+    7e-13 and 1.3e-12 mm between runs in two processes on 2 of 6 seeds, before this test said so; one process is
+    the same to the bit from run to run)."""
     seed = int(np.random.default_rng().integers(2**31))
     rng = np.random.default_rng(seed)
     model = parse_model(spray7())
@@ -185,8 +191,22 @@ def test_a_diagnosis_in_two_processes_gives_the_answer_of_one():
     info = hide(world, kind, float(rng.uniform(2.0, 5.0)), rng)
     meas = world.measure(info["q"], payload_kg=info["payload_kg"], temperature=info["temperature"])
     one, two = diagnose(model, meas, workers=1), diagnose(model, meas, workers=2)
-    same = [(f["kind"], f["joints"], f.get("correction")) for f in one.findings]
-    assert [(f["kind"], f["joints"], f.get("correction")) for f in two.findings] == same, (seed, kind)
-    assert np.array_equal(two.calibration.x, one.calibration.x), (seed, kind)
-    assert np.array_equal(two.calibration.holdout_residual_mm, one.calibration.holdout_residual_mm), (seed, kind)
+    same = [(f["kind"], f["joints"], f.get("correction"), f["evidence"]) for f in one.findings]
+    assert [(f["kind"], f["joints"], f.get("correction"), f["evidence"]) for f in two.findings] == same, (seed, kind)
     assert two.explanation == one.explanation, (seed, kind)
+    a, b = one.calibration, two.calibration
+    close = dict(rtol=1e-9, atol=1e-9, err_msg=f"seed {seed}, {kind}")
+    np.testing.assert_allclose(b.x, a.x, **close)
+    np.testing.assert_allclose(b.holdout_residual_mm, a.holdout_residual_mm, **close)
+    # what the findings' chained refits and the answer's doubts set, side by side in two processes
+    figures = lambda d: [[f.get(k, np.nan) for k in ("holdout_rms_before_mm", "holdout_rms_after_mm")]  # noqa: E731
+                         for f in d.findings]
+    np.testing.assert_allclose(figures(two), figures(one), **close)
+    assert [type(e) for e in b.effects] == [type(e) for e in a.effects], (seed, kind)
+    np.testing.assert_allclose([getattr(e, "switch_width", 0.0) for e in b.effects],
+                               [getattr(e, "switch_width", 0.0) for e in a.effects], **close)
+    assert len(b.mass_doubt) == len(a.mass_doubt), (seed, kind)
+    for u, v in zip(a.mass_doubt[1:], b.mass_doubt[1:]):
+        np.testing.assert_allclose(v, u, **close)
+    if any(_mass_driven(e) for e in a.effects):  # the doubt of the mass data is on the answer
+        assert len(a.mass_doubt) == 3, (seed, kind)

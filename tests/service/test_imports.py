@@ -15,7 +15,8 @@ LATE = ("scipy.stats", "scipy.optimize", "scipy.spatial")
 
 def _imported_after(modules: list[str]) -> set[str]:
     """The modules a fresh interpreter holds after importing `modules`."""
-    code = f"import importlib, json, sys\nfor m in {modules!r}: importlib.import_module(m)\nprint(json.dumps(sorted(sys.modules)))"
+    code = (f"import importlib, json, sys\nfor m in {modules!r}: importlib.import_module(m)\n"
+            "print(json.dumps(sorted(sys.modules)))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     return set(json.loads(out.stdout))
 
