@@ -279,8 +279,9 @@ class Chain:
         bases = x[..., lay.bases].reshape(*lead, S, 6)
         tools = x[..., lay.tools].reshape(*lead, T, 3)
         R0s = _per_setup_R0(R0, S)
-        self._frames = [_base_frame(b, R0s[i % S]) for i, b in enumerate(bases.reshape(-1, 6))]
-        Rbs = np.array([R for R, _ in self._frames]).reshape(*lead, S, 3, 3)
+        frames = [_base_frame(b, R0s[i % S]) for i, b in enumerate(bases.reshape(-1, 6))]
+        Rbs = np.array([R for R, _ in frames]).reshape(*lead, S, 3, 3)
+        self._turns = np.array([a for _, a in frames]).reshape(*lead, S, 3, 3)  # per setup: the world axes rx, ry, rz
         if labels is None:
             setup = target = np.zeros(N, int)
         else:
@@ -461,14 +462,13 @@ class Chain:
     def _base_columns(self, s: int, b: np.ndarray) -> np.ndarray:
         """Setup s's base columns (3, 6, [B,] N) written into b: translations, then the turns about the world axes rx,
         ry, rz (zero on the other setups' poses)."""
-        lead, S = self._p.shape[1:-1], self.layout.n_setups
-        axes = np.array([a for _, a in self._frames]).reshape(*lead, S, 3, 3)[..., s, :, :]  # the world axes
+        axes = self._turns[..., s, :, :]
         dp = self._p - _first(self.bases[..., s, :3])[..., None]
         b[:, :3] = 0.0
         b[0, 0] = b[1, 1] = b[2, 2] = 1.0
         for k in range(3):
             _cross_into(b[:, 3 + k], _first(axes[..., k, :])[..., None], dp)
-        if S > 1:
+        if self.layout.n_setups > 1:
             b *= self.setup == s
         return b
 
