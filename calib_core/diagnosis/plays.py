@@ -42,7 +42,9 @@ new poses at 0.51, 0.62 or 0.88x the noise from run to run."""
 @dataclass(frozen=True)
 class _LoadFeatures:
     """Joint j's identified-load regressor F (N, k): gravity regressor and payload columns, as Backlash.load_coef
-    weighs them; Z (N, rank) the same span as unit-RMS orthogonal features, load = F @ (to_coef @ beta)."""
+    weighs them; Z (N, rank) the same span as unit-RMS orthogonal features, load = F @ (to_coef @ beta). Poses with
+    equal rows of F (the targets of one pose: Agile Justin's two markers) get equal rows of Z, to the bit (the SVD's
+    differ in the last bits), so the switch fits take them as one (_tied)."""
 
     F: np.ndarray
     Z: np.ndarray
@@ -60,7 +62,8 @@ class _LoadFeatures:
         root_n = np.sqrt(len(U))
         to_coef = np.zeros((F.shape[1], rank))
         to_coef[keep] = root_n * (Vt[:rank].T / s[:rank]) / scale[keep][:, None]
-        return cls(F, U[:, :rank] * root_n, to_coef)
+        first, twin = np.unique(F, axis=0, return_index=True, return_inverse=True)[1:]
+        return cls(F, (U[:, :rank] * root_n)[first[twin.ravel()]], to_coef)
 
     def beta(self, load: np.ndarray) -> np.ndarray:
         return np.linalg.lstsq(self.Z, load, rcond=None)[0]
@@ -333,6 +336,24 @@ def _minpack_lm(fun: Callable, jac: Callable, p0: np.ndarray, max_nfev: int) -> 
                             factor=100.0, diag=None)[0]
 
 
+def _tied(Z: np.ndarray, e: np.ndarray, sw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The rows of a weighted fit of g(Z beta) to e (root weights sw) with equal rows of Z taken as one: their
+    weighted mean offset at their summed weight, and the offsets' scatter about those means (a constant) as one more
+    residual, so the sum of squares, its gradient and every Gauss-Newton step are those of all the rows, on half of
+    them for Agile Justin's two markers per pose (MINPACK's QR is the switch search's cost); rows of no weight (a
+    joint that does not move a target) drop out. (Z, e, sw, 0.0) when no two rows are equal and none is weightless."""
+    w = sw**2
+    rows, first, group = np.unique(Z, axis=0, return_index=True, return_inverse=True)
+    group = group.ravel()
+    if len(rows) == len(Z) and np.all(w > 0):
+        return Z, e, sw, 0.0
+    W = np.bincount(group, weights=w, minlength=len(rows))
+    mean = np.bincount(group, weights=w * e, minlength=len(rows)) / np.where(W > 0, W, 1.0)
+    scatter = float(np.sqrt(np.sum(w * (e - mean[group]) ** 2)))
+    keep = np.sort(first[W > 0])  # in the order the poses come
+    return Z[keep], mean[group[keep]], np.sqrt(W[group[keep]]), scatter
+
+
 def _switch(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta0: np.ndarray) -> np.ndarray:
     """Where a play switches: the load direction beta (on unit-RMS features Z) for which b/2 tanh(Z beta / t)
     best fits the per-pose joint offsets e (weighted least squares), t sharp. For b > 0 that is the classifier of
@@ -343,13 +364,15 @@ def _switch(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta0: np.ndarray)
     t = 0.05
     s0 = np.tanh(Z @ beta / t)
     b = 2.0 * float((sw**2 * s0 * e).sum() / max((sw**2 * s0 * s0).sum(), 1e-300))
+    Zt, et, swt, scatter = _tied(Z, e, sw)
 
     def fun(p):
-        return sw * (e - 0.5 * p[0] * np.tanh(Z @ p[1:] / t))
+        return np.r_[swt * (et - 0.5 * p[0] * np.tanh(Zt @ p[1:] / t)), scatter]
 
     def jac(p):
-        th = np.tanh(Z @ p[1:] / t)
-        return -sw[:, None] * np.column_stack([0.5 * th, (0.5 * p[0] / t) * (1.0 - th**2)[:, None] * Z])
+        th = np.tanh(Zt @ p[1:] / t)
+        return np.vstack([-swt[:, None] * np.column_stack([0.5 * th, (0.5 * p[0] / t) * (1.0 - th**2)[:, None] * Zt]),
+                          np.zeros((1, len(p)))])
 
     p = _minpack_lm(fun, jac, np.r_[b, beta], 50)
     return _unit_rms(Z, p[1:] * np.sign(p[0]))
@@ -410,14 +433,15 @@ def _softness(Z: np.ndarray, e: np.ndarray, weight: np.ndarray, beta: np.ndarray
     start = min(starts, key=lambda bb: cost(Z @ bb))
 
     ridge = np.sqrt(SHARPNESS_RIDGE * float(np.sum((sw * e) ** 2))) / SHARPEST  # see SHARPNESS_RIDGE
-    ridge_rows = np.c_[np.zeros((Z.shape[1], 1)), ridge * np.eye(Z.shape[1])]
+    ridge_rows = np.c_[np.zeros((Z.shape[1] + 1, 1)), np.r_[ridge * np.eye(Z.shape[1]), np.zeros((1, Z.shape[1]))]]
+    Zt, et, swt, scatter = _tied(Z, e, sw)
 
     def fun(p):
-        return np.r_[sw * (e - 0.5 * p[0] * np.tanh(Z @ p[1:])), ridge * p[1:]]
+        return np.r_[swt * (et - 0.5 * p[0] * np.tanh(Zt @ p[1:])), ridge * p[1:], scatter]
 
     def jac(p):
-        th = np.tanh(Z @ p[1:])
-        return np.vstack([-sw[:, None] * np.column_stack([0.5 * th, 0.5 * p[0] * (1.0 - th**2)[:, None] * Z]),
+        th = np.tanh(Zt @ p[1:])
+        return np.vstack([-swt[:, None] * np.column_stack([0.5 * th, 0.5 * p[0] * (1.0 - th**2)[:, None] * Zt]),
                           ridge_rows])
 
     p = _minpack_lm(fun, jac, np.r_[amplitude(Z @ start), start], 50)

@@ -812,6 +812,37 @@ def test_a_plays_switch_is_the_weighted_logistic_optimum_then_the_tanh_fit(seed)
     assert np.mean(np.sign(Z @ beta) == np.sign(Z @ truth)) > 0.9, seed
 
 
+def test_a_switch_fit_takes_the_targets_of_one_pose_as_one(seed, monkeypatch):
+    """Two targets per pose (equal load features, their own offsets and weights, a fifth weightless: a joint that does
+    not move one of them): the tied rows (_tied, half of them) carry every row's sum of squares and gradient, and the
+    switch and the softness fitted on them are those fitted on every row, to rounding (MINPACK follows the same steps:
+    at most 5e-7 of the switch's size, 2e-8 of the softness's from one switch, over 300-400 draws; the softness's
+    flat valley makes 1e-4 of a switch's 5e-7)."""
+    from calib_core.diagnosis import plays
+
+    rng = np.random.default_rng((seed, 23))
+    P, k = int(rng.integers(60, 150)), int(rng.integers(3, 12))
+    Z = np.repeat(np.linalg.qr(rng.normal(size=(P, k)))[0] * np.sqrt(P), 2, axis=0)
+    truth = rng.normal(size=k)
+    b = rng.uniform(1e-4, 1e-3)
+    e = 0.5 * b * np.sign(Z @ truth) + rng.normal(0, rng.uniform(0.05, 0.25) * b, 2 * P)
+    w = rng.uniform(0.5, 2.0, 2 * P) * (rng.random(2 * P) > 0.2)
+    Zt, et, swt, scatter = plays._tied(Z, e, np.sqrt(w))
+    assert len(Zt) <= P, seed
+    for beta in rng.normal(size=(3, k)):
+        g, gt = np.tanh(Z @ beta), np.tanh(Zt @ beta)
+        assert np.isclose(np.sum(w * (e - g) ** 2), np.sum((swt * (et - gt)) ** 2) + scatter**2, rtol=1e-12), seed
+        d, dt = (1 - g**2)[:, None] * Z, (1 - gt**2)[:, None] * Zt
+        assert np.allclose(d.T @ (w * (e - g)), dt.T @ (swt**2 * (et - gt)), rtol=1e-10, atol=1e-15), seed
+    start = rng.normal(size=k)
+    tied = plays._switch(Z, e, w, start)
+    tied = tied, plays._softness(Z, e, w, tied)
+    monkeypatch.setattr(plays, "_tied", lambda Z, e, sw: (Z, e, sw, 0.0))  # every row as it comes
+    every = plays._switch(Z, e, w, start), plays._softness(Z, e, w, tied[0])  # the softness from the same switch
+    for a, c in zip(tied, every):
+        assert np.abs(a - c).max() <= 1e-5 * np.linalg.norm(c), (seed, a, c)
+
+
 def test_a_look_alike_is_named_once_per_cause():
     """A bent link and its tilted form are one cause in the answer (the prose said "link_deflection J6,
     link_deflection J6"): the form that did best on held-out poses stands for it; other causes keep their order."""
