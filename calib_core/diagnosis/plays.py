@@ -343,10 +343,10 @@ def _tied(Z: np.ndarray, e: np.ndarray, sw: np.ndarray) -> tuple[np.ndarray, np.
     them for Agile Justin's two markers per pose (MINPACK's QR is the switch search's cost); rows of no weight (a
     joint that does not move a target) drop out. (Z, e, sw, 0.0) when no two rows are equal and none is weightless."""
     w = sw**2
+    if np.all(w > 0) and len(np.unique(Z[:, 0])) == len(Z):  # every row apart (one target), told by one column
+        return Z, e, sw, 0.0
     rows, first, group = np.unique(Z, axis=0, return_index=True, return_inverse=True)
     group = group.ravel()
-    if len(rows) == len(Z) and np.all(w > 0):
-        return Z, e, sw, 0.0
     W = np.bincount(group, weights=w, minlength=len(rows))
     mean = np.bincount(group, weights=w * e, minlength=len(rows)) / np.where(W > 0, W, 1.0)
     scatter = float(np.sqrt(np.sum(w * (e - mean[group]) ** 2)))

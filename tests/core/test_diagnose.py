@@ -816,8 +816,8 @@ def test_a_switch_fit_takes_the_targets_of_one_pose_as_one(seed, monkeypatch):
     """Two targets per pose (equal load features, their own offsets and weights, a fifth weightless: a joint that does
     not move one of them): the tied rows (_tied, half of them) carry every row's sum of squares and gradient, and the
     switch and the softness fitted on them are those fitted on every row, to rounding (MINPACK follows the same steps:
-    at most 5e-7 of the switch's size, 2e-8 of the softness's from one switch, over 300-400 draws; the softness's
-    flat valley makes 1e-4 of a switch's 5e-7)."""
+    at most 5e-7 of the switch's size, 2e-8 of the softness's, over 300-400 draws; the softness is compared from one
+    switch: its flat valley turns starts 5e-7 apart into answers 1e-4 apart)."""
     from calib_core.diagnosis import plays
 
     rng = np.random.default_rng((seed, 23))
