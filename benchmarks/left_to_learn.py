@@ -34,7 +34,7 @@ from calib_core.io import Measurements  # noqa: E402
 from calib_core.model import RobotModel  # noqa: E402
 
 LENGTH_SCALES = (0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 10.0)
-"""RBF length scales tried, in standard deviations of each joint's values on the calibration poses."""
+"""RBF length scales tried, in standard deviations of each feature on the calibration poses."""
 RIDGES = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
 """Ridges tried, relative to the kernel's unit diagonal."""
 FOLDS = 5
