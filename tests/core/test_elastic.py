@@ -447,3 +447,32 @@ def test_a_found_revolute_links_richer_forms_include_its_root_turn():
     for k in range(1, model.n_joints):
         forms = _refinements(LinkDeflection((k,)), {}, {}, ctx)
         assert (RootTurnLinkDeflection((k,)) in forms) == (not model.prismatic[k]), model.joint_names[k]
+
+
+def test_the_targets_of_one_pose_share_one_row_of_load_features(seed):
+    """Both targets measured at each pose of a torso carrying two arms, the rows in a drawn order: every joint's
+    identified-load features are one row, to the bit, for the two targets of a pose (the SVD that makes them gave the
+    two rows different last bits on Agile Justin: 397 distinct rows for 350 poses), so the play fits take each pose
+    once (plays._tied: 30 rows where 60, none for the weightless rows of a joint that does not move a target)."""
+    from calib_core.diagnosis.plays import _tied
+    from calib_core.io import Measurements
+
+    model = parse_model(torso_two_arms(mass=True))
+    rng = np.random.default_rng((seed, 24))
+    q = Twin(model, seed=seed, repeatability_mm=0.0, tracker_noise=False).measure(n=30).joints
+    order = rng.permutation(60)
+    meas = Measurements(joints=np.repeat(q, 2, axis=0)[order], points=np.zeros((60, 3)),
+                        target=np.tile([0, 1], 30)[order])
+    chain = K.Chain(model, K.nominal_vector(model), meas.joints, None, meas.labels)
+    pose = np.repeat(np.arange(30), 2)[order]
+    looked = 0
+    for j in np.flatnonzero(model.moving):
+        feats = _LoadFeatures.of(chain, meas, j)
+        if feats is None:
+            continue
+        looked += 1
+        first = np.array([np.flatnonzero(pose == p)[0] for p in pose])
+        assert np.array_equal(feats.Z, feats.Z[first]), (model.joint_names[j], seed)
+        w = rng.uniform(0.5, 2.0, 60) * (meas.target == rng.integers(2)) if j >= 4 else rng.uniform(0.5, 2.0, 60)
+        assert len(_tied(feats.Z, rng.normal(size=60), np.sqrt(w))[0]) <= 30, (model.joint_names[j], seed)
+    assert looked >= 5, seed
