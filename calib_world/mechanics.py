@@ -310,11 +310,28 @@ class Cantilever(Cause):
 class BaseTilt(Cause):
     """The mounting gives under the robot's overturning moment: the base turns about its origin by
     compliance (rad/(N*m)) x the horizontal part of sum m (com - base) x g (robot bodies and payload),
-    counted from the moment with the robot parked at home without payload (when the base was levelled)."""
+    counted from the moment with the robot parked at home without payload (when the base was levelled).
+    A platform on wheels or springs is stiffer one way: about the horizontal axis `axis_deg` from the base's x
+    (turned about gravity) the compliance is `compliance`, about the one across it `compliance / ratio`."""
 
     compliance: float = 0.0
+    ratio: float = 1.0
+    axis_deg: float = 0.0
     magnitude: ClassVar[tuple] = ("compliance",)
     kind = "base_tilt"
+
+    def turn(self, robot: PhysicalRobot, pose: Pose, M: np.ndarray) -> np.ndarray:
+        """(N, 3) rad, tracker frame: the mount's turn under the horizontal moment M (N, 3) N*m."""
+        if self.ratio == 1.0:
+            return self.compliance * M
+        g = np.einsum("nab,b->na", pose.base[:, :3, :3], robot.gravity / np.linalg.norm(robot.gravity))
+        u = pose.base[:, :3, 0] - (pose.base[:, :3, 0] * g).sum(1, keepdims=True) * g
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        w = cross(g, u)
+        a = np.radians(self.axis_deg)
+        soft, stiff = np.cos(a) * u + np.sin(a) * w, -np.sin(a) * u + np.cos(a) * w
+        return self.compliance * ((M * soft).sum(1, keepdims=True) * soft
+                                  + (M * stiff).sum(1, keepdims=True) * stiff / self.ratio)
 
     @staticmethod
     def moment(robot: PhysicalRobot, pose: Pose, payload) -> np.ndarray:
@@ -333,7 +350,7 @@ class BaseTilt(Cause):
             return []
         r = ctx.robot
         M = self.moment(r, pose, ctx.payload) - self.moment(r, r.frames(r.home), [0.0])
-        D = about_point(self.compliance * M, pose.base[:, :3, 3])
+        D = about_point(self.turn(r, pose, M), pose.base[:, :3, 3])
         return [("pre", 0, inverse(pose.base) @ D @ pose.base)]
 
 

@@ -31,7 +31,7 @@ EXPECTED = {
     "elastic_bearings": "link_deflection",
     "telescopic_bending": "link_deflection",
     "thermal_growth": "thermal_drift",
-    "base_tilt": "unexplained",
+    "base_tilt": "base_compliance",
     "rehoming_step": "unexplained",
     "cable_force": "unexplained",
 }
@@ -46,6 +46,7 @@ EXPECTED_34 = {
     "tilted_base_sag": "link_deflection",
     "telescopic_sag": "link_deflection",
     "two_joint_springs": "joint_compliance",
+    "mount_compliance": "base_compliance",
 }
 """Issue 34's mechanisms -> the contract kind a correct diagnosis reports (a target re-mounted mid-campaign has no
 kind of its own: a step in time order, `unexplained`)."""
@@ -59,6 +60,9 @@ changes sign at many poses, not at two)."""
 TILT_DEG = (3.0, 10.0)
 """tilted_base_*: gravity's true direction is this many degrees off the model's (uniform), about a random horizontal
 axis."""
+MOUNT_RATIO = (1.0, 6.0)
+"""mount_compliance: the mount is this many times stiffer across its soft axis than about it (uniform; a platform on
+wheels: Agile Justin's fit finds about 5), the soft axis at a uniform angle about gravity."""
 TILT_MADE_SHARE = 0.25
 """tilted_base_spring: the spring sits on a joint where the tilt changes the load by at least this share (RMS) of
 the tilted load: the load the model's gravity cannot compute (a vertical axis), and carries at least half
@@ -227,6 +231,8 @@ def _candidates_34(world: World, kind: str, q, cols, rng, moving) -> list:
             for k in range(1, n):
                 if not r.prismatic[k] and np.linalg.norm(o[:, k] - o[:, k - 1], axis=1).max() >= 50.0:
                     out.append(TiltedBase(tilt, (Cantilever(k, 1e12),)))
+    elif kind == "mount_compliance":
+        out = [BaseTilt(1e-7, float(rng.uniform(*MOUNT_RATIO)), float(rng.uniform(0.0, 180.0)))]
     elif kind == "telescopic_sag":
         o = r.frames(q).origins
         for k in range(1, n):

@@ -142,7 +142,7 @@ one among the look-alikes (_best_of_lookalikes)."""
 FOLLOWS = {"joint_compliance": "the load on {j}", "backlash": "the sign of the load on {j}",
            "link_deflection": "the bending load on {j}", "cyclic_joint_error": "the angle of {j}",
            "joint_scale": "the travel of {j}", "axis_straightness": "the travel of {j}",
-           "thermal_drift": "time or temperature"}
+           "thermal_drift": "time or temperature", "base_compliance": "the robot's overturning moment on its mount"}
 """What a correction follows, in words, by the kind it was fitted as."""
 
 

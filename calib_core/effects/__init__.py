@@ -11,7 +11,7 @@ from ..model import ANGULAR, GEOMETRIC, RobotModel
 from .base import Basis, Context, Effect, apply, has_loads, loads
 from .cartesian_effects import (AxisStraightness, GuidedLinkDeflection, LinkDeflection, LinkGrowth,
                                 RootTurnLinkDeflection, ThermalDrift, TiltedLinkDeflection)
-from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance
+from .gravity import LateralCompliance, LateralJointCompliance, LoadCompliance, MountCompliance
 from .joint_effects import Backlash, CyclicJointError, JointCompliance, JointScale, TiltedCompliance, gravity_across
 from .residual import ResidualField
 from .structure import Probe, SessionStep, TargetStep
@@ -20,10 +20,10 @@ CLASSES = {c.__name__: c for c in (JointCompliance, LinkDeflection, CyclicJointE
                                    AxisStraightness, ThermalDrift, ResidualField, LoadCompliance, LateralCompliance,
                                    LateralJointCompliance,
                                    SessionStep, Probe, TargetStep, LinkGrowth, TiltedCompliance,
-                                   TiltedLinkDeflection, GuidedLinkDeflection, RootTurnLinkDeflection)}
+                                   TiltedLinkDeflection, GuidedLinkDeflection, RootTurnLinkDeflection, MountCompliance)}
 KINDS = {"joint_compliance": JointCompliance, "link_deflection": LinkDeflection, "cyclic_joint_error": CyclicJointError,
          "backlash": Backlash, "joint_scale": JointScale, "axis_straightness": AxisStraightness,
-         "thermal_drift": ThermalDrift, "unexplained": ResidualField}
+         "thermal_drift": ThermalDrift, "unexplained": ResidualField, "base_compliance": MountCompliance}
 """Kind -> class for states stored before the class name was (the contract's kinds are not unique per class)."""
 HARMONICS = (1, 2, 3)
 TILT_LOADED = 0.05
@@ -64,6 +64,8 @@ def candidates(model: RobotModel, meas: Measurements) -> tuple[list[Effect], lis
             bent = [j for j in range(n) if model.moving[j] and model.mass[model.descendants(j)].sum() > 0]
             if len(bent) > 1:
                 out.append(LateralJointCompliance.for_data(tuple(bent), Context(model, chain, meas)))
+            # the mount tilting under the robot's overturning moment (a pedestal, a mobile platform)
+            out.append(MountCompliance.for_data(Context(model, chain, meas)))
         else:
             notes.append("the model has no masses: a link's bending needs mass data and is not tested; the joints' "
                          "lateral compliance (link_deflection) is tested with the load identified from the data, the "

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..kinematics import _cross
-from ..statics import gravity_moments, gravity_world
+from ..statics import distal_loads, gravity_moments, gravity_world
 from .base import Basis, Context, Effect, joint_basis
 from .cartesian_effects import LinkDeflection
 from .joint_effects import TiltedCompliance
@@ -360,6 +360,110 @@ class LateralJointCompliance(Effect):
         return f"the bearings and links at {who} tilt under the gravity bending moment (lateral elasticity{how})"
 
 
+@dataclass(frozen=True)
+class MountCompliance(Effect):
+    """The robot's mount gives under the robot's overturning moment (a pedestal, a mobile platform on its wheels or
+    springs): the whole robot turns about its base origin by C M, M the horizontal gravity moment (N*m) of its bodies
+    and payload about that origin, about two horizontal axes fixed to the base (`horizontal_axes`), C a symmetric
+    2 x 2 compliance (rad/(N*m)): a mount may be stiffer along one direction than across it. Its axes stay with the
+    base, where a joint's lateral compliance turns with the joint. `masses` / `gravity` as LateralJointCompliance's."""
+
+    joints: tuple = ()
+    kind = "base_compliance"
+    needs = "mass"
+    masses: tuple = ()
+    gravity: tuple = ()
+    prior: tuple = ()  # ridge prior std per compliance, rad/(N*m) (for_data); none when empty
+
+    @classmethod
+    def for_data(cls, ctx: Context) -> "MountCompliance":
+        """The compliances with a ridge prior of TILT_PRIOR_RAD on the RMS tilt each gives on these poses."""
+        e = cls()
+        m = e.moment(ctx)
+        rms = np.sqrt(np.mean(m**2, axis=0))
+        return replace(e, prior=tuple(float(TILT_PRIOR_RAD / max(r, 1e-12)) for r in (rms[0], rms[1], rms.max())))
+
+    def prior_stds(self, model):
+        return np.asarray(self.prior, float) if self.prior else np.inf
+
+    def parameter_names(self, model):
+        return ["base.compliance_uu", "base.compliance_vv", "base.compliance_uv"]
+
+    def parameter_units(self, model):
+        return ["rad/(N*m)"] * 3
+
+    def label(self, model):
+        return "base_compliance[mount]" + (" identified masses" if self.masses else "")
+
+    def horizontal_axes(self, model) -> np.ndarray:
+        """(2, 3) the mount's two tilt axes in the base frame: across gravity, the first as near the base's x as may be
+        (its y where x is vertical), the second gravity's up x the first."""
+        up = -np.asarray(self.gravity if self.gravity else model.gravity, float)
+        up /= np.linalg.norm(up)
+        e = np.eye(3)[0] if abs(up[0]) < 0.9 else np.eye(3)[1]
+        u = e - (e @ up) * up
+        u /= np.linalg.norm(u)
+        return np.array([u, np.cross(up, u)])
+
+    def moment(self, ctx: Context) -> np.ndarray:
+        """(N, 2) N*m: the gravity moment of everything the base carries about the base origin, about the two
+        horizontal axes."""
+        ch = ctx.chain
+        masses = np.asarray(self.masses, float) if self.masses else None
+        gravity = np.asarray(self.gravity, float) if self.gravity else None
+        M, S = distal_loads(ch, ctx.meas.payload_kg(), masses)
+        roots = ctx.model.parents < 0
+        mass, first = M[roots].sum(0), S[roots].sum(0)  # (N,), (N, 3) kg, kg*mm
+        g = np.broadcast_to(gravity_world(ch, gravity), first.shape)
+        moment = _cross(first - mass[:, None] * ch.base_origin, g) / 1000.0  # measurement frame
+        Rb = np.broadcast_to(ch.Rb, (len(mass), 3, 3))
+        return np.einsum("nab,na->nb", Rb, moment) @ self.horizontal_axes(ctx.model).T
+
+    def _tilt(self, ctx: Context) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N, 2) moment, and the displacement (N, 3) mm per rad of turn about each of the two horizontal axes."""
+        ch = ctx.chain
+        Rb = np.broadcast_to(ch.Rb, (ch.p.shape[0], 3, 3))
+        lever = ch.p - ch.base_origin
+        u, w = np.einsum("nab,kb->kna", Rb, self.horizontal_axes(ctx.model))  # (N, 3) each, measurement frame
+        return self.moment(ctx), _cross(u, lever), _cross(w, lever)
+
+    def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        return []  # the whole robot turns, no joint: its size is the mount's tilt (tilt_rad)
+
+    def mass_columns(self, ctx: Context, values: np.ndarray, bodies: tuple, gravity: np.ndarray) -> np.ndarray:
+        """(N, 3, 4 len(bodies)) mm: the displacement per unit change of each body's mass (kg) and first moment (kg*mm,
+        body frame) at compliances `values` (the moment is linear in the mass data: MassStep's columns)."""
+        ch = ctx.chain
+        _, ux, uy = self._tilt(ctx)
+        N = ch.p.shape[0]
+        g = np.broadcast_to(gravity_world(ch, gravity), (N, 3))
+        Rb = np.broadcast_to(ch.Rb, (N, 3, 3))
+        cxx, cyy, cxy = np.asarray(values, float)
+        out = np.zeros((N, 3, 4 * len(bodies)))
+        H = self.horizontal_axes(ctx.model).T
+        for i, k in enumerate(bodies):
+            levers = [ch.o_beta[k] - ch.base_origin] + [ch.R[k][:, :, a] for a in range(3)]
+            for c, lever in enumerate(levers):
+                m = np.einsum("nab,na->nb", Rb, _cross(lever, g) / 1000.0) @ H
+                out[:, :, 4 * i + c] = ux * (cxx * m[:, :1] + cxy * m[:, 1:2]) + uy * (cxy * m[:, :1] + cyy * m[:, 1:2])
+        return out
+
+    def tilt_rad(self, ctx: Context, values: np.ndarray) -> np.ndarray:
+        """(N,) rad: how far the mount turns at each pose."""
+        m, _, _ = self._tilt(ctx)
+        cxx, cyy, cxy = np.asarray(values, float)
+        return np.hypot(cxx * m[:, 0] + cxy * m[:, 1], cxy * m[:, 0] + cyy * m[:, 1])
+
+    def basis(self, ctx: Context) -> Basis:
+        m, ux, uy = self._tilt(ctx)
+        cart = np.stack([ux * m[:, :1], uy * m[:, 1:], ux * m[:, 1:] + uy * m[:, :1]], axis=2)
+        return Basis(None, cart, np.hypot(m[:, 0], m[:, 1]), "overturning moment of the robot on its mount (N*m)")
+
+    def explain(self, model):
+        how = ", mass data identified from the data" if self.masses else ""
+        return f"the robot's mount tilts under the robot's overturning moment (base compliance{how})"
+
+
 MASS_PRIOR_SHARE = 0.5
 """Prior std of an identified body mass as a share of the model's (at least this share of the mean body mass)."""
 MASS_PRIOR_LEVER_MM = 200.0
@@ -431,6 +535,8 @@ class MassStep(Effect):
 
         for effect, values in self.causes:
             v = np.asarray(values, float)
+            if isinstance(effect, MountCompliance):  # its tilt columns below, as a joint compliance's
+                bp[:, :, :P] += effect.mass_columns(ctx, v, self.bodies, g)
             if isinstance(effect, LinkDeflection):
                 bp += self._bending_columns(ctx, effect, v, g)
                 continue

@@ -153,6 +153,7 @@ PLAIN = {
     "joint_scale": "{j} moves more or less than commanded, in proportion to its travel (gear ratio or encoder scale)",
     "axis_straightness": "the linear axis {j} is not straight: the carriage swerves and tilts as it travels",
     "thermal_drift": "the robot and the tracker drift apart with temperature or time",
+    "base_compliance": "the robot's mount (pedestal, platform) tilts under the robot's own overturning moment",
     "mass_data": "the model's mass data are off, so the loads the other causes follow are too",
     "unexplained": "structure no named cause explains, corrected by offsets that follow the joints",
 }
@@ -165,6 +166,8 @@ NEXT = {
     "joint_scale": "Check the gear ratio or encoder setting of {j} in the controller.",
     "axis_straightness": "Have the guide of {j} checked if the straightness matters beyond the compensation.",
     "thermal_drift": "Calibrate at the production temperature, or keep the temperature recorded with each run.",
+    "base_compliance": "Stiffen or re-level the mount if its tilt matters beyond the compensation; keep the payload "
+                       "data right: the compensation follows the robot's overturning moment.",
 }
 
 
