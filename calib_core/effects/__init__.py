@@ -122,4 +122,4 @@ def effect_from_state(state: dict) -> tuple[Effect, np.ndarray]:
 __all__ = ["effect_state", "on_joints", "effect_from_state", "CLASSES", "KINDS", "LateralCompliance", "LateralJointCompliance", "LoadCompliance", "Probe", "SessionStep", "TargetStep", "Basis", "Context", "Effect", "apply", "candidates", "AxisStraightness", "Backlash",
            "CyclicJointError", "JointCompliance", "JointScale", "LinkDeflection", "LinkGrowth", "ThermalDrift",
            "TiltedCompliance", "TiltedLinkDeflection", "GuidedLinkDeflection",
-           "RootTurnLinkDeflection"]
+           "RootTurnLinkDeflection", "MountCompliance"]

@@ -31,7 +31,8 @@ SPRAY = parse_model(spray7())
 NAMED = [k for k in KINDS if EXPECTED[k] != "unexplained"]
 """World kinds the diagnosis has a name for."""
 OFF_VOCABULARY = [k for k in KINDS if EXPECTED[k] == "unexplained"]
-"""World kinds no named cause has the shape of (base tilt, re-homing step, cable force)."""
+"""World kinds no named cause has the shape of (re-homing step, cable force; a base tilting under the robot's
+moment is named base_compliance since issue 34's round on Agile Justin)."""
 SIZES = (3.0, 8.0)
 """Drawn log-uniformly: the unabsorbable part of the hidden cause is this many times the noise RMS.  The
 benchmark (benchmarks/detection.py) measures the small sizes; a test must pass on every draw."""
@@ -58,7 +59,7 @@ measures 0.3-2.7x the noise at 1-4x (docs/RESULTS.md, section 3); the geometry a
 when a stiffening spring is named as a soft play with the spring among its look-alikes: the calibration poses
 cannot tell them apart, and fresh poses at larger loads can (seed 1808188314: 1.83x the noise at 7.8x, the
 spring on the play's load 1 % better held out)."""
-Z_LIMIT = {"base_tilt": 3.0, "cable_force": 6.0, "rehoming_step": 3.0}
+Z_LIMIT = {"cable_force": 6.0, "rehoming_step": 3.0}
 """Guard on the RMS z of fresh poses' predictions against the truth when structure is left unexplained: the
 de-noised held-out model error is in the prediction std (calib_core.uncertainty). The target is 2 and it is
 NOT met on every draw (issue 9 open): over 24 draws of 3-8x the noise, base tilt and cable force reached

@@ -28,17 +28,18 @@ def _exact_world(doc, seed):
 @pytest.mark.parametrize("doc", [spray7, arm6])
 def test_the_form_is_the_worlds_anisotropic_mount(doc, seed):
     """The world turns its base about the gravity-horizontal axes by a drawn 2 x 2 compliance (soft axis at a drawn
-    angle, 1-6x stiffer across it) times its own overturning moment. The form's three compliances, fitted beside a
+    angle, 1-6x stiffer across it) times its own overturning moment (0.3-3 mrad at most). The form's three compliances, fitted beside a
     constant tilt, reproduce the displacement to 1 % and the compliance's two principal values to 2 %."""
     rng = np.random.default_rng((seed, 2))
     model, world, q = _exact_world(doc, seed)
     cal = identify(model, world.measure(q), folds=0)  # the tracker frame: noise-free, the nominal geometry
-    c, ratio = float(rng.uniform(2e-7, 2e-6)), float(rng.uniform(1.0, 6.0))
-    cause = BaseTilt(c, ratio, float(rng.uniform(0.0, 180.0)))
-    d = world.displacement(cause, q, world.columns(q))
     meas = world.measure(q)
     ctx = Context.at(model, cal.x, meas, cal.R0)
     e = MountCompliance.for_data(ctx)
+    # a tilt of 0.3-3 mrad at the largest moment (a real mount's; the form is its first order)
+    c = float(rng.uniform(3e-4, 3e-3)) / np.abs(e.moment(ctx)).max()
+    ratio = float(rng.uniform(1.0, 6.0))
+    d = world.displacement(BaseTilt(c, ratio, float(rng.uniform(0.0, 180.0))), q, world.columns(q))
     _, ux, uy = e._tilt(ctx)
     A = np.concatenate([ctx.basis(e).cart, ux[:, :, None], uy[:, :, None]], axis=2).reshape(-1, 5)
     v, *_ = np.linalg.lstsq(A, d.ravel(), rcond=None)
@@ -65,7 +66,7 @@ def test_the_mass_columns_are_the_derivative_of_the_tilt(seed):
         moved[k, c] += h
         fd = (dataclasses.replace(base, masses=tuple(map(tuple, moved))).basis(ctx).cart @ v
               - base.basis(ctx).cart @ v) / h
-        assert np.allclose(cols[:, :, c], fd, rtol=1e-6, atol=1e-9 * np.abs(cols).max()), (seed, k, c)
+        assert np.allclose(cols[:, :, c], fd, rtol=1e-6, atol=1e-6 * np.abs(cols).max()), (seed, k, c)
 
 
 def test_a_soft_mount_is_named_blind_and_nothing_on_a_stiff_one(seed):
