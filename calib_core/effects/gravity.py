@@ -428,35 +428,29 @@ class MountCompliance(Effect):
         return self.moment(ctx), _cross(u, lever), _cross(w, lever)
 
     def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
-        return []  # the whole robot turns, no joint: its size is the mount's tilt (tilt_rad)
+        return []  # the whole robot turns, no joint
 
     def mass_columns(self, ctx: Context, values: np.ndarray, bodies: tuple, gravity: np.ndarray) -> np.ndarray:
         """(N, 3, 4 len(bodies)) mm: the displacement per unit change of each body's mass (kg) and first moment (kg*mm,
         body frame) at compliances `values` (the moment is linear in the mass data: MassStep's columns)."""
         ch = ctx.chain
-        _, ux, uy = self._tilt(ctx)
+        _, tu, tv = self._tilt(ctx)
         N = ch.p.shape[0]
         g = np.broadcast_to(gravity_world(ch, gravity), (N, 3))
         Rb = np.broadcast_to(ch.Rb, (N, 3, 3))
-        cxx, cyy, cxy = np.asarray(values, float)
+        cuu, cvv, cuv = np.asarray(values, float)
         out = np.zeros((N, 3, 4 * len(bodies)))
         H = self.horizontal_axes(ctx.model).T
         for i, k in enumerate(bodies):
             levers = [ch.o_beta[k] - ch.base_origin] + [ch.R[k][:, :, a] for a in range(3)]
             for c, lever in enumerate(levers):
                 m = np.einsum("nab,na->nb", Rb, _cross(lever, g) / 1000.0) @ H
-                out[:, :, 4 * i + c] = ux * (cxx * m[:, :1] + cxy * m[:, 1:2]) + uy * (cxy * m[:, :1] + cyy * m[:, 1:2])
+                out[:, :, 4 * i + c] = tu * (cuu * m[:, :1] + cuv * m[:, 1:2]) + tv * (cuv * m[:, :1] + cvv * m[:, 1:2])
         return out
 
-    def tilt_rad(self, ctx: Context, values: np.ndarray) -> np.ndarray:
-        """(N,) rad: how far the mount turns at each pose."""
-        m, _, _ = self._tilt(ctx)
-        cxx, cyy, cxy = np.asarray(values, float)
-        return np.hypot(cxx * m[:, 0] + cxy * m[:, 1], cxy * m[:, 0] + cyy * m[:, 1])
-
     def basis(self, ctx: Context) -> Basis:
-        m, ux, uy = self._tilt(ctx)
-        cart = np.stack([ux * m[:, :1], uy * m[:, 1:], ux * m[:, 1:] + uy * m[:, :1]], axis=2)
+        m, tu, tv = self._tilt(ctx)  # the turn about u carries c_uu M_u + c_uv M_v, about v c_uv M_u + c_vv M_v
+        cart = np.stack([tu * m[:, :1], tv * m[:, 1:], tu * m[:, 1:] + tv * m[:, :1]], axis=2)
         return Basis(None, cart, np.hypot(m[:, 0], m[:, 1]), "overturning moment of the robot on its mount (N*m)")
 
     def explain(self, model):
