@@ -86,10 +86,10 @@ def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> 
         for e, v in zip(cal.effects, cal.effect_values):
             if e.bounded and names & set(e.parameter_names(model)):
                 for j, t in e.turns(ctx, v):
-                    big = float(np.abs(t).max())
-                    if big > (PLAUSIBLE_TRAVEL_MM if model.prismatic[j] else PLAUSIBLE_TURN_RAD):
-                        sizes.append(f"{model.joint_names[j]} by up to "
-                                     + (f"{big:.3g} mm" if model.prismatic[j] else f"{np.degrees(big):.3g} deg"))
+                    big, linear = float(np.abs(t).max()), j >= 0 and model.prismatic[j]
+                    if big > (PLAUSIBLE_TRAVEL_MM if linear else PLAUSIBLE_TURN_RAD):
+                        sizes.append(f"{model.joint_names[j] if j >= 0 else 'the robot on its mount'} by up to "
+                                     + (f"{big:.3g} mm" if linear else f"{np.degrees(big):.3g} deg"))
         plays = _plays_beyond_motion(cal, f, meas) if f.get("kind") == "backlash" else ""
         if plays and not sizes:
             f["physical"] = False
@@ -101,11 +101,11 @@ def _judge_sizes(cal: Calibration, findings: list[dict], meas: Measurements) -> 
             limits = sorted({f"{PLAUSIBLE_TRAVEL_MM:g} mm" if "mm" in x else
                              f"{np.degrees(PLAUSIBLE_TURN_RAD):.3g} deg" for x in sizes})
             f["bound"] = (f"it would move {', '.join(sizes)} at a calibration pose, beyond the "
-                          f"{' or '.join(limits)} a real play, spring or bearing moves a joint")
+                          f"{' or '.join(limits)} a real play, spring, bearing or mount moves")
             if plays:
                 f["bound"] += "; " + plays
             f["evidence"] += (f"; its size is not physical: it would move {', '.join(sizes)} at a calibration pose, "
-                              f"where a real play, spring or bearing turns a joint by a fraction of a degree. The "
+                              f"where a real play, spring, bearing or mount turns by a fraction of a degree. The "
                               f"data determine what it predicts (held-out poses confirm it), not these values: it "
                               f"stands in for structure with no name here, or trades one joint's share against "
                               f"another's, so read it as a correction, not as the joint's")

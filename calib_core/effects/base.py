@@ -171,7 +171,8 @@ class Effect:
 
     def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """How far the effect turns (rad) or moves (mm, a prismatic joint) each joint it acts on at each pose:
-        [(joint, (N,))]; [] for an effect that is not a joint's motion (a field, a step of the whole robot)."""
+        [(joint, (N,))]; joint -1 for the whole robot turning on its mount; [] for an effect that is not a joint's
+        motion (a field, a step of the whole robot)."""
         b = self.basis(ctx)
         if b.joint is None:
             return []

@@ -428,7 +428,10 @@ class MountCompliance(Effect):
         return self.moment(ctx), _cross(u, lever), _cross(w, lever)
 
     def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
-        return []  # the whole robot turns, no joint
+        """The whole robot's turn on its mount (rad) at each pose, as joint -1 (the base)."""
+        m, _, _ = self._tilt(ctx)
+        cuu, cvv, cuv = np.asarray(values, float)
+        return [(-1, np.hypot(cuu * m[:, 0] + cuv * m[:, 1], cuv * m[:, 0] + cvv * m[:, 1]))]
 
     def mass_columns(self, ctx: Context, values: np.ndarray, bodies: tuple, gravity: np.ndarray) -> np.ndarray:
         """(N, 3, 4 len(bodies)) mm: the displacement per unit change of each body's mass (kg) and first moment (kg*mm,

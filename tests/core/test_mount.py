@@ -88,3 +88,27 @@ def test_a_soft_mount_is_named_blind_and_nothing_on_a_stiff_one(seed):
         fresh = world.sample_joints(100, rng)
         err = np.linalg.norm(d.calibration.predict(fresh) - world.true_points(fresh), axis=1)
         assert np.sqrt(np.mean(err**2)) < 0.6 * world.noise_rms_mm(fresh), (seed, size, info["cause"])
+
+
+def test_a_mount_tilting_beyond_a_real_one_is_said_to_be_a_correction(seed):
+    """The mount's compliance fitted on a world with a soft mount, then set to a drawn multiple of the plausible turn at
+    the largest moment: up to the limit the finding is physical, beyond it the answer says the robot would turn on
+    its mount by more than a real mount gives, and reads it as a correction."""
+    from calib_core.diagnosis import PLAUSIBLE_TURN_RAD
+    from calib_core.diagnosis.findings import _judge_sizes
+
+    rng = np.random.default_rng(seed)
+    model = parse_model(arm6())
+    world = World(model, seed)
+    info = hide(world, "mount_compliance", float(rng.uniform(3.0, 8.0)), rng)
+    meas = world.measure(info["q"])
+    cal = identify(model, meas, effects=(MountCompliance(),), folds=0)
+    m = MountCompliance().moment(Context.at(model, cal.basis_x, meas, cal.R0))
+    for factor, physical in ((rng.uniform(0.05, 0.9), True), (rng.uniform(1.1, 20.0), False)):
+        cal.solution.x[-3:] = factor * PLAUSIBLE_TURN_RAD / np.linalg.norm(m, axis=1).max() * np.array([1.0, 1.0, 0.0])
+        finding = {"kind": "base_compliance", "joints": [], "evidence": "a mount",
+                   "parameters": [{"name": n} for n in MountCompliance().parameter_names(model)]}
+        _judge_sizes(cal, [finding], meas)
+        where = f"the mount at {factor:.2f}x the plausible turn, seed {seed}: {finding}"
+        assert finding.get("physical", True) is physical, where
+        assert ("the robot on its mount by up to" in finding["evidence"]) is (not physical), where
