@@ -8,7 +8,8 @@ import numpy as np
 from scipy import special
 
 from .. import kinematics as K
-from ..effects import Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, MountCompliance, TiltedCompliance
+from ..effects import (Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, MountCompliance,
+                       TiltedCompliance)
 from ..effects.gravity import (MAX_LATERAL_TERMS, LateralCompliance, LateralJointCompliance, _as_tuple, body_parameters,
                                lateral_axes, load_mix_for, mass_step, tilted)
 from ..identify import Calibration, widened
@@ -100,10 +101,10 @@ def _on_carried_masses(pool: list[Effect], chosen: list[Effect]) -> list[Effect]
 
 
 def _mass_driven(e: Effect) -> bool:
-    """A linear compliance driven by mass data (the model's or identified; a tilted base's spring too): its load is
-    bilinear in compliance and mass."""
-    return isinstance(e, (LateralJointCompliance, TiltedCompliance, MountCompliance)) or (type(e) is JointCompliance
-                                                                          and not e.stiffening)
+    """A linear compliance driven by mass data (the model's or identified; a tilted base's spring and a mount too):
+    its load is bilinear in compliance and mass."""
+    return isinstance(e, (LateralJointCompliance, TiltedCompliance, MountCompliance)) or (
+        type(e) is JointCompliance and not e.stiffening)
 
 
 MASS_NOTE = "the mass data were identified from the data under the compliances found"

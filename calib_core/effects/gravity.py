@@ -495,9 +495,9 @@ TILT_STEP_RAD = 1e-6
 @dataclass(frozen=True)
 class MassStep(Effect):
     """One Gauss-Newton step of the mass data under fixed compliances (never a reported cause): the displacement
-    of `causes` (joint and lateral compliances, a tilted base's springs, link bending; fitted values `values`) per
-    unit change of each body's mass and first moment, and of the two tilts of gravity (its direction in the base
-    frame, `gravity`). Deflection = compliance x load(mass, gravity) is bilinear; fitting this beside the causes
+    of `causes` (joint and lateral compliances, a tilted base's springs, a mount, link bending; fitted values
+    `values`) per unit change of each body's mass and first moment, and of the two tilts of gravity (its direction in
+    the base frame, `gravity`). Deflection = compliance x load(mass, gravity) is bilinear; fitting this beside the causes
     themselves is the step."""
 
     kind = "mass_data"
