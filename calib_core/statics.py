@@ -49,6 +49,15 @@ def gravity_moments(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None
     return _moments(chain, *distal_loads(chain, payload_kg, _mass_data(chain, phi)), g)
 
 
+def base_moment(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None,
+                g: np.ndarray | None = None) -> np.ndarray:
+    """Moment (N, 3) N*m, measurement frame, of the gravity of everything the base carries (every body and the
+    payload) about the base origin: what tips the robot on its mount. `phi`, `g`: see distal_loads, gravity_world."""
+    M, S = distal_loads(chain, payload_kg, _mass_data(chain, phi))
+    roots = chain.model.parents < 0
+    return _moments(chain, M[roots].sum(0), S[roots].sum(0), g, about=chain.base_origin)
+
+
 def _mass_data(chain: Chain, phi: np.ndarray | None) -> np.ndarray | None:
     """phi, or None for the model's mass data when it has some."""
     if phi is None and chain.model.mass is None:
@@ -56,9 +65,11 @@ def _mass_data(chain: Chain, phi: np.ndarray | None) -> np.ndarray | None:
     return phi
 
 
-def _moments(chain: Chain, M: np.ndarray, S: np.ndarray, g: np.ndarray | None = None) -> np.ndarray:
-    """(n, N, 3) N*m: the carried mass M at its centre S / M, about each row's axis point."""
-    return _cross(S - M[..., None] * chain.o_theta, np.broadcast_to(gravity_world(chain, g), S.shape)) / 1000.0
+def _moments(chain: Chain, M: np.ndarray, S: np.ndarray, g: np.ndarray | None = None,
+             about: np.ndarray | None = None) -> np.ndarray:
+    """(n, N, 3) N*m: the carried mass M at its centre S / M, about each row's axis point (or the points `about`)."""
+    point = chain.o_theta if about is None else about
+    return _cross(S - M[..., None] * point, np.broadcast_to(gravity_world(chain, g), S.shape)) / 1000.0
 
 
 def joint_loads(chain: Chain, payload_kg: np.ndarray, phi: np.ndarray | None = None,

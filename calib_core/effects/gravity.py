@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..kinematics import _cross
-from ..statics import distal_loads, gravity_moments, gravity_world
+from ..statics import base_moment, gravity_moments, gravity_world
 from .base import Basis, Context, Effect, joint_basis
 from .cartesian_effects import LinkDeflection
 from .joint_effects import TiltedCompliance
@@ -405,54 +405,52 @@ class MountCompliance(Effect):
         u /= np.linalg.norm(u)
         return np.array([u, np.cross(up, u)])
 
+    def _across(self, ctx: Context, moment: np.ndarray) -> np.ndarray:
+        """(..., N, 2): moments (..., N, 3) N*m in the measurement frame, about the two horizontal axes."""
+        Rb = np.broadcast_to(ctx.chain.Rb, (ctx.chain.p.shape[0], 3, 3))
+        return np.einsum("nab,...na->...nb", Rb, moment) @ self.horizontal_axes(ctx.model).T
+
     def moment(self, ctx: Context) -> np.ndarray:
         """(N, 2) N*m: the gravity moment of everything the base carries about the base origin, about the two
         horizontal axes."""
-        ch = ctx.chain
         masses = np.asarray(self.masses, float) if self.masses else None
         gravity = np.asarray(self.gravity, float) if self.gravity else None
-        M, S = distal_loads(ch, ctx.meas.payload_kg(), masses)
-        roots = ctx.model.parents < 0
-        mass, first = M[roots].sum(0), S[roots].sum(0)  # (N,), (N, 3) kg, kg*mm
-        g = np.broadcast_to(gravity_world(ch, gravity), first.shape)
-        moment = _cross(first - mass[:, None] * ch.base_origin, g) / 1000.0  # measurement frame
-        Rb = np.broadcast_to(ch.Rb, (len(mass), 3, 3))
-        return np.einsum("nab,na->nb", Rb, moment) @ self.horizontal_axes(ctx.model).T
+        return self._across(ctx, base_moment(ctx.chain, ctx.meas.payload_kg(), masses, gravity))
 
-    def _tilt(self, ctx: Context) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(N, 2) moment, and the displacement (N, 3) mm per rad of turn about each of the two horizontal axes."""
+    def _swings(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
+        """The displacement (N, 3) mm per rad of turn about each of the two horizontal axes."""
         ch = ctx.chain
         Rb = np.broadcast_to(ch.Rb, (ch.p.shape[0], 3, 3))
-        lever = ch.p - ch.base_origin
         u, w = np.einsum("nab,kb->kna", Rb, self.horizontal_axes(ctx.model))  # (N, 3) each, measurement frame
-        return self.moment(ctx), _cross(u, lever), _cross(w, lever)
+        lever = ch.p - ch.base_origin
+        return _cross(u, lever), _cross(w, lever)
+
+    @staticmethod
+    def _turn(moment: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """(..., N, 2) rad: the turn C M about the two axes under moments (..., N, 2) N*m."""
+        cuu, cvv, cuv = np.asarray(values, float)
+        mu, mv = moment[..., 0], moment[..., 1]
+        return np.stack([cuu * mu + cuv * mv, cuv * mu + cvv * mv], axis=-1)
 
     def turns(self, ctx: Context, values: np.ndarray) -> list[tuple[int, np.ndarray]]:
         """The whole robot's turn on its mount (rad) at each pose, as joint -1 (the base)."""
-        m, _, _ = self._tilt(ctx)
-        cuu, cvv, cuv = np.asarray(values, float)
-        return [(-1, np.hypot(cuu * m[:, 0] + cuv * m[:, 1], cuv * m[:, 0] + cvv * m[:, 1]))]
+        turn = self._turn(self.moment(ctx), values)
+        return [(-1, np.hypot(turn[:, 0], turn[:, 1]))]
 
     def mass_columns(self, ctx: Context, values: np.ndarray, bodies: tuple, gravity: np.ndarray) -> np.ndarray:
         """(N, 3, 4 len(bodies)) mm: the displacement per unit change of each body's mass (kg) and first moment (kg*mm,
         body frame) at compliances `values` (the moment is linear in the mass data: MassStep's columns)."""
         ch = ctx.chain
-        _, tu, tv = self._tilt(ctx)
-        N = ch.p.shape[0]
-        g = np.broadcast_to(gravity_world(ch, gravity), (N, 3))
-        Rb = np.broadcast_to(ch.Rb, (N, 3, 3))
-        cuu, cvv, cuv = np.asarray(values, float)
-        out = np.zeros((N, 3, 4 * len(bodies)))
-        H = self.horizontal_axes(ctx.model).T
-        for i, k in enumerate(bodies):
-            levers = [ch.o_beta[k] - ch.base_origin] + [ch.R[k][:, :, a] for a in range(3)]
-            for c, lever in enumerate(levers):
-                m = np.einsum("nab,na->nb", Rb, _cross(lever, g) / 1000.0) @ H
-                out[:, :, 4 * i + c] = tu * (cuu * m[:, :1] + cuv * m[:, 1:2]) + tv * (cuv * m[:, :1] + cvv * m[:, 1:2])
-        return out
+        k = np.asarray(bodies, int)
+        levers = np.concatenate([(ch.o_beta[k] - ch.base_origin)[:, None], np.moveaxis(ch.R[k], 3, 1)], axis=1)
+        g = np.broadcast_to(gravity_world(ch, gravity), ch.p.shape)
+        turn = self._turn(self._across(ctx, _cross(levers, g) / 1000.0), values)  # (B, 4, N, 2)
+        tu, tv = self._swings(ctx)
+        moved = turn[..., :1] * tu + turn[..., 1:] * tv  # (B, 4, N, 3)
+        return moved.transpose(2, 3, 0, 1).reshape(len(ch.p), 3, 4 * len(k))
 
     def basis(self, ctx: Context) -> Basis:
-        m, tu, tv = self._tilt(ctx)  # the turn about u carries c_uu M_u + c_uv M_v, about v c_uv M_u + c_vv M_v
+        m, (tu, tv) = self.moment(ctx), self._swings(ctx)  # about u: c_uu M_u + c_uv M_v; about v: c_uv M_u + c_vv M_v
         cart = np.stack([tu * m[:, :1], tv * m[:, 1:], tu * m[:, 1:] + tv * m[:, :1]], axis=2)
         return Basis(None, cart, np.hypot(m[:, 0], m[:, 1]), "overturning moment of the robot on its mount (N*m)")
 
@@ -497,8 +495,8 @@ class MassStep(Effect):
     """One Gauss-Newton step of the mass data under fixed compliances (never a reported cause): the displacement
     of `causes` (joint and lateral compliances, a tilted base's springs, a mount, link bending; fitted values
     `values`) per unit change of each body's mass and first moment, and of the two tilts of gravity (its direction in
-    the base frame, `gravity`). Deflection = compliance x load(mass, gravity) is bilinear; fitting this beside the causes
-    themselves is the step."""
+    the base frame, `gravity`). Deflection = compliance x load(mass, gravity) is bilinear; fitting this beside the
+    causes themselves is the step."""
 
     kind = "mass_data"
     bodies: tuple = ()

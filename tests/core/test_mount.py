@@ -40,7 +40,7 @@ def test_the_form_is_the_worlds_anisotropic_mount(doc, seed):
     c = float(rng.uniform(3e-4, 3e-3)) / np.abs(e.moment(ctx)).max()
     ratio = float(rng.uniform(1.0, 6.0))
     d = world.displacement(BaseTilt(c, ratio, float(rng.uniform(0.0, 180.0))), q, world.columns(q))
-    _, ux, uy = e._tilt(ctx)
+    ux, uy = e._swings(ctx)
     A = np.concatenate([ctx.basis(e).cart, ux[:, :, None], uy[:, :, None]], axis=2).reshape(-1, 5)
     v, *_ = np.linalg.lstsq(A, d.ravel(), rcond=None)
     left = d.ravel() - A @ v
