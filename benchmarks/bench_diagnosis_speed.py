@@ -4,8 +4,10 @@ Cases: the four real datasets as `calib convert-dataset` writes them (70/30 spli
 on the 70 %, its extended model is judged on the 30 % it never saw) and the independent world (spray7, mass data
 15 % off, one drawn cause at 5x the noise) at 150 and 2000 poses. Each case runs in its own process, one BLAS
 thread, with PYTHONPATH set to the revision's tree (a `git worktree` made once under /tmp), so both revisions see
-the same machine at the same time (--cache reuses a committed revision's earlier results). Per case: wall time and its ratio, the findings (kind and joints) and the
-held-out RMS on the 30 % (or on 100 fresh world poses), with their relative difference.
+the same machine at the same time; scipy's modules are imported before the clock on both sides, as the service's fork
+server has them (--cache reuses a committed revision's earlier results). Per case: wall time and its ratio, the
+findings (kind and joints) and the held-out RMS on the 30 % (or on 100 fresh world poses), with their relative
+difference.
 
 Run: .venv/bin/python -m benchmarks.bench_diagnosis_speed [--base REV]
      [--cases motoman motoman_order iiwa justin hilti w150 w2000]
@@ -32,6 +34,9 @@ CASES = ("motoman", "motoman_order", "iiwa", "justin", "hilti", "w150", "w2000")
 CHILD = r'''
 import json, os, sys, time
 import numpy as np
+import scipy.linalg, scipy.optimize, scipy.special, scipy.stats  # before the clock on both sides, as the service's
+# fork server imports them (service/processes.py PRELOAD): the base imports scipy.stats with its module, this code
+# where a diagnosis first uses it, which put 0.3-1.3 s of import on this code's clock alone
 if os.path.isdir(os.path.join(os.getcwd(), "calib_core", "diagnosis")):  # by the tree: the editable install's
     from calib_core.diagnosis import diagnose  # finder would otherwise serve a missing subpackage from the repo
 else:

@@ -65,9 +65,11 @@ def test_plans_are_bounded_and_routes_stay_fast(plan_server, model_doc):
     bodies = [(assert_problem(a, 503), a, dt) for a, dt in answers]  # (b, c) no plan queued unboundedly, none ran
     assert all(int(a.headers["Retry-After"]) > 0 for _, a, _ in bodies)
     busy = [dt for b, _, dt in bodies if "every plan process is busy" in b["detail"]]
-    stopped = [b for b, _, _ in bodies if "CALIB_PLAN_TIMEOUT_S" in b["detail"]]
-    assert len(busy) >= N_PLANS - 2 and max(busy) < GET_BOUND_S, bodies  # refused at once, not after waiting
-    assert 1 <= len(stopped) <= 2 and "1 s" in stopped[0]["detail"], bodies
+    stopped = [(b, dt) for b, _, dt in bodies if "CALIB_PLAN_TIMEOUT_S" in b["detail"]]
+    assert 1 <= len(stopped) <= 2 and "1 s" in stopped[0][0]["detail"], bodies
+    # refused at once: before the plan that ran met its 1 s bound (an absolute 1 s bound here failed once at 1.06 s
+    # with two diagnoses running beside the suite, where the stopped plan took longer still)
+    assert len(busy) >= N_PLANS - 2 and max(busy) < min(dt for _, dt in stopped), (busy, stopped)
 
     r = s.client.post(f"/robots/{rid}/plan", json={"n_poses": 3, "seed": 2})  # (c) a new process plans the next
     assert r.status_code == 200, r.text
