@@ -11,7 +11,7 @@ from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflectio
 from ..effects.structure import STEP_WINDOW, at_gap, session_clock
 from ..parallel import pmap
 from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
-from .findings import STRONG_STD, _beyond, _finding, _who
+from .findings import SIGNIFICANT_STD, STRONG_STD, _beyond, _finding, _who
 from .screening import Candidate, _thresholds, screen
 
 LOOKALIKE = 0.8
@@ -49,12 +49,32 @@ def _best_of_lookalikes(c, trial, ranked, thresholds, model, fit, chosen, x_ref,
 
 def _simplest_first(tried: list, model) -> list:
     """(candidate, fit) pairs by held-out error, the pick first: the simplest form that held-out poses cannot show to
-    be worse than the best one (parsimony)."""
+    be worse than the best one (parsimony); a bending link that bends the wrong way (_bends_up) gives way to the
+    simplest bending link among them that does not. Only to a link: a link fitted the wrong way can still be the
+    right kind in the wrong shape (the world's elastic bearings, taken by a joint's spring instead in 2 of 760
+    detection draws when any form came first)."""
     tried = sorted(tried, key=lambda t: t[1].metrics()["holdout_rms_mm"])
     best_fit = tried[0][1]
     by_size = sorted(tried, key=lambda t: (len(t[0].effect.parameter_names(model)), t[1].metrics()["holdout_rms_mm"]))
-    pick = next(t for t in by_size if t is tried[0] or not _better(t[1], best_fit, 0.05))
+    fair = [t for t in by_size if t is tried[0] or not _better(t[1], best_fit, 0.05)]
+    pick = fair[0]
+    if _bends_up(pick[0].effect, pick[1]):
+        pick = next((t for t in fair if isinstance(t[0].effect, LinkDeflection) and not _bends_up(t[0].effect, t[1])),
+                    pick)
     return [pick] + [t for t in tried if t is not pick]
+
+
+def _bends_up(e: Effect, cal) -> bool:
+    """A link's bending in `cal` with a compliance (of its carried load or of its own weight, 1/(EI) times mass data
+    that are off by some per cent) below -SIGNIFICANT_STD std: the link would bend up under its weight, which no beam
+    does. Such a fit is a look-alike taking another cause's shape: spray7's telescopic stage sagging as its tube
+    comes out, named as the link before it with its own weight at -9.5 std (seed 983100358), the stage's own form
+    as good on held-out poses."""
+    if not isinstance(e, LinkDeflection):
+        return False
+    names = [n for n in e.parameter_names(cal.model) if n.endswith((".link_compliance", ".link_compliance_own_weight"))]
+    table = {p["name"]: p for p in cal.parameters()}
+    return any(_beyond(table.get(n, {})) < -SIGNIFICANT_STD for n in names)
 
 
 def _on_strong_joints(e: Effect, cal, model) -> Effect | None:
