@@ -357,17 +357,24 @@ def parse_measurements(data: bytes | str, model: RobotModel, instrument: str | N
                                   f"allowed (the model has {model.n_joints} joints)")
         fail()
     header = [h.strip() for h in rows[0]]
+    act = list(model.actuated_names)
+    known = set(act) | {"x", "y", "z"} | set(OPTIONAL)
+    for sep, called in ((";", "';'"), ("\t", "tabs")):  # a spreadsheet's export in a locale with decimal commas
+        if len(header) == 1 and len(known & {h.strip().strip('"') for h in header[0].split(sep)}) >= 2:
+            err(header_line, None, header[0], f"the fields are separated by {called}: the measurement CSV separates "
+                                              "them by ',' and writes decimals with '.' (export it as CSV, comma "
+                                              "delimited, with '.' as the decimal separator)")
+            fail()
 
     seen = set()
     for h in header:
         if h in seen:
             err(header_line, h, h, "duplicated column")
         seen.add(h)
-    act = list(model.actuated_names)
     coupled = [model.joint_names[j] for j in np.flatnonzero(model.is_coupled)]
     fixed = {model.joint_names[j] for j in np.flatnonzero(model.is_fixed)}
     taus = {f"tau_{model.joint_names[j]}": j for j in np.flatnonzero(model.moving)}
-    known = set(act) | set(coupled) | {"x", "y", "z"} | set(OPTIONAL) | set(taus)
+    known |= set(coupled) | set(taus)
     for h in header:
         if h in fixed:
             err(header_line, h, h, "a fixed row of the model has no joint value: leave this column out")

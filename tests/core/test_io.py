@@ -75,6 +75,19 @@ def test_bad_rows_name_row_column_value(text, row, column, value, words):
                for e in errs), errs
 
 
+@pytest.mark.parametrize("sep, said", [(";", "';'"), ("\t", "tabs")])
+def test_a_spreadsheet_export_with_another_separator_is_named_as_such(seed, sep, said):
+    """A CSV exported where the decimal point is a comma (';' between fields, '3,14') or as tab-separated text: one
+    error on row 1 saying how its fields are separated and what the contract asks, not one per column."""
+    text = write_measurements(Twin(MODEL, seed).measure(n=5), MODEL)
+    if sep == ";":
+        text = "\n".join(";".join(f.replace(".", ",") for f in ln.split(",")) for ln in text.splitlines())
+    else:
+        text = text.replace(",", sep)
+    (e,) = _errors(text)
+    assert e["row"] == 1 and e["value"] == text.splitlines()[0] and said in e["message"] and "','" in e["message"]
+
+
 def test_every_error_is_listed_and_nothing_half_parsed():
     bad = ROW.replace("54.315206", "75")
     text = "\n".join([HEADER, ROW, bad, ROW.replace("P001", "P002"), bad.replace("P001", "P003")])
