@@ -125,8 +125,10 @@ def test_a_motion_upstream_of_the_arms_is_found_shared(tree, seed, motion):
     found = _found(tree, meas)
     significant = [s for s in found if s.p_value < 0.01]
     assert significant, (seed, motion, joint, size, found)
-    # one motion explains no more than the shared motion moves, and a large part of it
-    assert truth / 3 < significant[0].share < truth + 0.15, (seed, motion, joint, size, truth, found)
+    # one motion explains a large part of what the shared motion moves, and not much more: the share is estimated from
+    # the two hands' cross-products at 120 poses (a torso joint, 700 draws: share - truth mean -0.28, std 0.14; 2 over
+    # +0.15: seed 202 at +0.16, and a test run's seed 1287319432 at +0.24, its share capped at 1)
+    assert truth / 3 < significant[0].share < truth + 0.3, (seed, motion, joint, size, truth, found)
 
 
 def test_each_hand_on_its_own_is_not_shared(tree, seed):
