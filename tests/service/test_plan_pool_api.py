@@ -67,8 +67,8 @@ def test_plans_are_bounded_and_routes_stay_fast(plan_server, model_doc):
     busy = [dt for b, _, dt in bodies if "every plan process is busy" in b["detail"]]
     stopped = [(b, dt) for b, _, dt in bodies if "CALIB_PLAN_TIMEOUT_S" in b["detail"]]
     assert 1 <= len(stopped) <= 2 and "1 s" in stopped[0][0]["detail"], bodies
-    # refused at once: before the plan that ran met its 1 s bound (an absolute 1 s bound here failed once at 1.06 s
-    # with two diagnoses running beside the suite, where the stopped plan took longer still)
+    # refused at once: before the plan that ran met its 1 s bound (an absolute 1 s here failed once at 1.06 s with
+    # two diagnoses running beside the suite: a loaded machine slows the refusal and the stopped plan alike)
     assert len(busy) >= N_PLANS - 2 and max(busy) < min(dt for _, dt in stopped), (busy, stopped)
 
     r = s.client.post(f"/robots/{rid}/plan", json={"n_poses": 3, "seed": 2})  # (c) a new process plans the next
