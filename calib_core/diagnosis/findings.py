@@ -202,10 +202,12 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
     A finding on several joints lists in `significant_joints` the joints whose own parameters are beyond
     SIGNIFICANT_STD std of zero, and its evidence names the others. A finding that breaks its physical bound (a size
     no real joint has, `_judge_sizes`; a joint compliance below -SIGNIFICANT_STD std: a spring never pushes back the
-    wrong way) is not presented under a physical name: its kind becomes "correction", with `follows` (the kind it
+    wrong way; a bending link whose every compliance is below it: no link bends up under a load) is not presented
+    under a physical name: its kind becomes "correction", with `follows` (the kind it
     was fitted as), `physical` false, `bound` (the bound it breaks, with the numbers) and one plain sentence first
     in its evidence: what it follows, what it gains held out, and why it is not a physical cause. A compliance whose
-    negative joints are all within SIGNIFICANT_STD std of zero stays physical."""
+    negative joints are all within SIGNIFICANT_STD std of zero stays physical; a bending link with one share below
+    it and one not stays named, that share said as a correction within it (`negative_parameters`)."""
     table = {p["name"]: p for p in cal.parameters()}
     for f in findings:
         if f.get("kind") == "correction" or "correction" in f or not f.get("parameters"):
@@ -251,6 +253,21 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
                                   f"{', '.join(springs)}")
             else:
                 f["bound"] = neg + ("; " + f["bound"] if f.get("bound") else "")
+                f["physical"] = False
+        links = [p for p in params if f["kind"] == "link_deflection"
+                 and p["name"].endswith((".link_compliance", ".link_compliance_own_weight"))]
+        bent_up = [p for p in links if _beyond(p) < -SIGNIFICANT_STD]
+        if bent_up:
+            f["negative_parameters"] = [p["name"] for p in bent_up]
+            said = ", ".join(f"{p['name']} = {p['value']:.3g} +/- {p['std']:.2g}"
+                             f"{' ' + p['unit'] if p.get('unit') else ''}" for p in bent_up)
+            up = (f"{said} {'is' if len(bent_up) == 1 else 'are'} negative by more than {SIGNIFICANT_STD:g} std, and "
+                  f"no link bends up under a load")
+            if len(bent_up) < len(links):  # its other share bends it the right way: named, the share said
+                f["evidence"] += (f"; {up}: that share is a correction within this cause (the mass data's split "
+                                  f"between what the link carries and its own weight is off), not a bending")
+            else:
+                f["bound"] = up + ("; " + f["bound"] if f.get("bound") else "")
                 f["physical"] = False
         if f.get("physical") is not False:
             continue

@@ -5,12 +5,12 @@ import numpy as np
 
 from calib_core.diagnosis import SIGNIFICANT_STD, explain, present_findings
 from calib_core.diagnosis.findings import _judge_sizes
-from calib_core.effects import Backlash, JointCompliance
+from calib_core.effects import Backlash, JointCompliance, LinkDeflection
 from calib_core.identify import identify
 from calib_core.model import parse_model
 from calib_core.robots import spray7
 from calib_world import World
-from calib_world.mechanics import JointSpring
+from calib_world.mechanics import Cantilever, JointSpring
 
 SPRAY = parse_model(spray7())
 J3, J4 = 2, 3
@@ -206,3 +206,35 @@ def test_a_cause_with_no_size_in_the_final_model_is_not_named(seed):
     assert not Diagnosis.verdict(d).startswith("causes found"), Diagnosis.verdict(d)
     assert Diagnosis.verdict(SimpleNamespace(untested=None, findings=[sized, faded])).startswith("causes found; 1 "
                                                                                                    "cause(s) the later")
+
+
+def test_a_link_bending_up_is_a_correction_and_one_share_up_is_said_within_it(seed):
+    """The world's J4 link as a cantilever drawn to bend up under everything (EI < 0) or to bend down under what it
+    carries and up under its own weight (a negative own mass): a bending link whose every compliance is below -2 std
+    is presented as a correction ('no link bends up under a load'); one with a share below it and one not keeps its
+    name, with that share said as a correction within it (`negative_parameters`). Judged against the fitted table."""
+    rng = np.random.default_rng(seed)
+    j = J4
+    for up in rng.permutation(["all", "own weight"]):
+        world = World(SPRAY, seed)
+        EI = rng.uniform(1.5e12, 2.5e12)
+        world.hide(Cantilever(SPRAY.joint_names[j], EI=-EI if up == "all" else EI,
+                              own_mass_kg=None if up == "all" else -rng.uniform(80.0, 120.0)))
+        cal = identify(SPRAY, world.measure(n=100, payload_kg=[0.0, 20.0]), effects=(LinkDeflection((j,)),),
+                       folds=0)
+        f = _finding(cal, (j,))
+        present_findings(cal, [f])
+        table = {p["name"]: p for p in cal.parameters()}
+        names = LinkDeflection((j,)).parameter_names(SPRAY)
+        below = [n for n in names if table[n]["value"] < -SIGNIFICANT_STD * table[n]["std"]]
+        where = f"{up} up, EI {EI:.3g}, seed {seed}: {[(n, table[n]['value'] / table[n]['std']) for n in names]} {f}"
+        assert below, where  # the world bends it up: the fit sees it
+        assert f["negative_parameters"] == below, where
+        if len(below) == len(names):
+            assert f["kind"] == "correction" and f["follows"] == "link_deflection" and f["physical"] is False, where
+            assert "no link bends up under a load" in f["bound"], where
+            assert f["evidence"].startswith("This is a correction"), where
+        else:
+            assert f["kind"] == "link_deflection" and f.get("physical", True) is True, where
+            assert "no link bends up under a load: that share is a correction within this cause" in f["evidence"], where
+            assert f"{below[0]} = -" in f["evidence"], where
