@@ -135,6 +135,8 @@ def _plays_beyond_motion(cal: Calibration, f: dict, meas: Measurements) -> str:
 SIGNIFICANT_STD = 2.0
 """A parameter's value is beyond its noise when it is more than this many std from zero: a joint of a finding on
 several joints carries a share only then, and a compliance below -SIGNIFICANT_STD std is negative for sure."""
+LINK_COMPLIANCES = (".link_compliance", ".link_compliance_own_weight")
+"""A bending link's compliances (1/(EI) times what it carries, times its own weight): no link bends up under either."""
 STRONG_STD = 3.0
 """A compliance of several joints is tried on its joints beyond this many std of zero before those beyond
 SIGNIFICANT_STD (_Search.narrowed; kept when held-out poses do not find the wider form better), and so is a rival
@@ -255,7 +257,7 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
                 f["bound"] = neg + ("; " + f["bound"] if f.get("bound") else "")
                 f["physical"] = False
         links = [p for p in params if f["kind"] == "link_deflection"
-                 and p["name"].endswith((".link_compliance", ".link_compliance_own_weight"))]
+                 and p["name"].endswith(LINK_COMPLIANCES)]
         bent_up = [p for p in links if _beyond(p) < -SIGNIFICANT_STD]
         if bent_up:
             f["negative_parameters"] = [p["name"] for p in bent_up]
