@@ -137,6 +137,11 @@ SIGNIFICANT_STD = 2.0
 several joints carries a share only then, and a compliance below -SIGNIFICANT_STD std is negative for sure."""
 LINK_COMPLIANCES = (".link_compliance", ".link_compliance_own_weight")
 """A bending link's compliances (1/(EI) times what it carries, times its own weight): no link bends up under either."""
+
+
+def bent_up(params: list[dict]) -> list[dict]:
+    """Of a parameter table's rows, a bending link's compliances below -SIGNIFICANT_STD std: the link bending up."""
+    return [p for p in params if p["name"].endswith(LINK_COMPLIANCES) and _beyond(p) < -SIGNIFICANT_STD]
 STRONG_STD = 3.0
 """A compliance of several joints is tried on its joints beyond this many std of zero before those beyond
 SIGNIFICANT_STD (_Search.narrowed; kept when held-out poses do not find the wider form better), and so is a rival
@@ -256,20 +261,18 @@ def present_findings(cal: Calibration, findings: list[dict]) -> None:
             else:
                 f["bound"] = neg + ("; " + f["bound"] if f.get("bound") else "")
                 f["physical"] = False
-        links = [p for p in params if f["kind"] == "link_deflection"
-                 and p["name"].endswith(LINK_COMPLIANCES)]
-        bent_up = [p for p in links if _beyond(p) < -SIGNIFICANT_STD]
-        if bent_up:
-            f["negative_parameters"] = [p["name"] for p in bent_up]
+        wrong = bent_up(params) if f["kind"] == "link_deflection" else []
+        if wrong:
+            f["negative_parameters"] = [p["name"] for p in wrong]
             said = ", ".join(f"{p['name']} = {p['value']:.3g} +/- {p['std']:.2g}"
-                             f"{' ' + p['unit'] if p.get('unit') else ''}" for p in bent_up)
-            up = (f"{said} {'is' if len(bent_up) == 1 else 'are'} negative by more than {SIGNIFICANT_STD:g} std, and "
-                  f"no link bends up under a load")
-            if len(bent_up) < len(links):  # its other share bends it the right way: named, the share said
-                f["evidence"] += (f"; {up}: that share is a correction within this cause (the mass data's split "
+                             f"{' ' + p['unit'] if p.get('unit') else ''}" for p in wrong)
+            why = (f"{said} {'is' if len(wrong) == 1 else 'are'} negative by more than {SIGNIFICANT_STD:g} std, and "
+                   f"no link bends up under a load")
+            if len(wrong) < sum(p["name"].endswith(LINK_COMPLIANCES) for p in params):  # named: its other share
+                f["evidence"] += (f"; {why}: that share is a correction within this cause (the mass data's split "
                                   f"between what the link carries and its own weight is off), not a bending")
             else:
-                f["bound"] = up + ("; " + f["bound"] if f.get("bound") else "")
+                f["bound"] = why + ("; " + f["bound"] if f.get("bound") else "")
                 f["physical"] = False
         if f.get("physical") is not False:
             continue

@@ -11,7 +11,7 @@ from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflectio
 from ..effects.structure import STEP_WINDOW, at_gap, session_clock
 from ..parallel import pmap
 from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
-from .findings import LINK_COMPLIANCES, SIGNIFICANT_STD, STRONG_STD, _beyond, _finding, _who
+from .findings import STRONG_STD, _beyond, _finding, _who, bent_up
 from .screening import Candidate, _thresholds, screen
 
 LOOKALIKE = 0.8
@@ -72,9 +72,8 @@ def _bends_up(e: Effect, cal) -> bool:
     as good on held-out poses."""
     if not isinstance(e, LinkDeflection):
         return False
-    names = [n for n in e.parameter_names(cal.model) if n.endswith(LINK_COMPLIANCES)]
-    table = {p["name"]: p for p in cal.parameters()}
-    return any(_beyond(table.get(n, {})) < -SIGNIFICANT_STD for n in names)
+    mine = set(e.parameter_names(cal.model))
+    return bool(bent_up([p for p in cal.parameters() if p["name"] in mine]))
 
 
 def _on_strong_joints(e: Effect, cal, model) -> Effect | None:
