@@ -151,8 +151,10 @@ def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None
     except OSError as exc:
         raise DemoError(f"cannot read the measurements {data}: {exc}") from None
     except MeasurementError as exc:
-        listed = "".join(f"\n    row {e['row']}, column {e['column']}: {e['message']}" for e in exc.errors[:10])
-        raise DemoError(f"{data} does not fit the contract CSV ({exc.total} errors):{listed}") from None
+        listed = "".join(f"\n    {', '.join(f'{k} {e[k]}' for k in ('row', 'column') if e[k] is not None)}: "
+                         f"{e['message']}" for e in exc.errors[:10])
+        raise DemoError(f"{data} does not fit the contract CSV ({exc.total} error{'s' if exc.total != 1 else ''}):"
+                        f"{listed}") from None
     lines = text.splitlines()
     body = [k for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith(("#", "//"))]
     header, rows = body[0], body[1:]

@@ -94,6 +94,9 @@ def test_demo_reads_local_data_with_the_same_limits_mode(tmp_path, model_doc, cs
         demo.from_files(tmp_path / "m.json", tmp_path / "d.csv", 0)
     camp = demo.from_files(tmp_path / "m.json", tmp_path / "d.csv", 0, "motion_capture", "warn")
     assert camp.cal.n_poses + camp.val.n_poses == 150 and camp.cal.instrument == "motion_capture"
+    (tmp_path / "s.csv").write_text(csv_text.replace(",", ";"))  # one error, on the header's row: said so
+    with pytest.raises(demo.DemoError, match=r"\(1 error\):\n    row 1: the fields are separated by ';'"):
+        demo.from_files(tmp_path / "m.json", tmp_path / "s.csv", 0)
 
 
 def test_a_stopped_server_leaves_nothing_in_the_temporary_directory(tmp_path):
