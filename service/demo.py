@@ -467,11 +467,12 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
 
 def _why(reason: str | None) -> str:
     """A compensation reason without its target's own figures, to count targets by it: 'not reachable: 0.310 mm
-    left after 30 iterations (needs A2 beyond its limit)' -> 'needs A2 beyond its limit'."""
+    left after 30 iterations (needs A2 beyond its limit)' -> 'needs A2 beyond its limit'; 'still converging: raise
+    max_iter above 30 (about 41 at this rate)' -> 'still converging: raise max_iter above 30'."""
     if not reason:
         return "no reason given"
     m = re.fullmatch(r"not reachable: [\d.]+ mm left after \d+ iterations \((.*)\)", reason)
-    return m.group(1) if m else reason
+    return re.sub(r" \(about \d+ at this rate\)$", "", m.group(1) if m else reason)
 
 
 def _unreached(reached: np.ndarray, reasons: list, resid: np.ndarray) -> None:
@@ -486,7 +487,9 @@ def _unreached(reached: np.ndarray, reasons: list, resid: np.ndarray) -> None:
     for why, idx in sorted(by.items(), key=lambda kv: -len(kv[1])):
         left = resid[idx]
         most = f"; up to {np.nanmax(left):.3f} mm left" if np.isfinite(left).any() else ""
-        say(f"{len(idx)} x {why}{most}", 5)
+        rates = [int(m.group(1)) for i in idx if (m := re.search(r"\(about (\d+) at this rate\)", reasons[i] or ""))]
+        slowest = f" (the slowest about {max(rates)} at its rate)" if rates else ""
+        say(f"{len(idx)} x {why}{slowest}{most}", 5)
 
 
 def _reveal(camp: Campaign, findings: list[dict]) -> None:

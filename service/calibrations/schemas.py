@@ -4,15 +4,18 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from calib_core.compensate import MAX_ADVISED_ITER
+
 from ..limits import MAX_PREDICT_ROWS
 
 Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
 """A JSON number, finite; strict: the string "1" is not a number."""
 MAX_POSES = MAX_PREDICT_ROWS  # enforced before parsing by limits.BatchLimitMiddleware (413); here for the OpenAPI
 MAX_ROW = 256
-MAX_COMPENSATE_ITER = 200
-"""Gauss-Newton iterations a compensation may ask per target (30 by default): bounds the request's work."""
 """At most this many values in one row of joints (a robot has a handful of joints)."""
+MAX_COMPENSATE_ITER = MAX_ADVISED_ITER
+"""Gauss-Newton iterations a compensation may ask per target (30 by default): bounds the request's work, and is the
+most an unreached target's reason advises (calib_core.compensate)."""
 Row = Annotated[list[Finite], Field(max_length=MAX_ROW)]
 PerPose = Annotated[list[Finite], Field(max_length=MAX_POSES)]
 Label = Annotated[str, Field(max_length=200)]

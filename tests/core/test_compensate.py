@@ -358,3 +358,33 @@ def test_a_field_that_slopes_along_a_redundant_axis_is_compensated(seed):
     out = compensate(robot, robot.predict(q), seeds)
     reached = np.asarray(out.residual_mm, float) <= 1e-3
     assert reached.mean() >= 0.97, (seed, int(reached.sum()), np.nanmax(out.residual_mm))
+
+
+def test_an_unreached_targets_reason_is_what_more_iterations_do(seed):
+    """"still converging" comes with the iterations that reach the target at the rate it closed in, and holds
+    (max_iter raised to them reaches it). A target 1 mm beyond the arm's farthest point along a direction, seeded
+    there (the arm stretched toward it), is never told to raise max_iter, and the most iterations a reason may
+    advise do not reach it either (the iiwa's stretched arm, A3-A7 at 0, was told to raise max_iter, its residual
+    the same from iteration 10 to 120)."""
+    from calib_core.compensate import MAX_ADVISED_ITER
+
+    model = parse_model(arm6())
+    twin = Twin(model, seed)
+    robot = identify(model, twin.measure(n=60), folds=1).robot
+    rng = np.random.default_rng(seed)
+    q = sample_uniform(model, 6, rng, margin=0.3)
+    p = robot.predict(q)
+    near = p + rng.normal(0.0, 50.0, p.shape)  # 50 mm off the seeds' points: a few iterations each
+    few = compensate(robot, near, q, max_iter=1)
+    told = [int(r.split("about ")[1].split(" ")[0]) for r in few.reason if r]
+    assert told and all("still converging: raise max_iter above 1 (about " in r for r in few.reason if r), few.reason
+    assert compensate(robot, near, q, max_iter=max(told) + 2).reachable.all(), (seed, told)
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    lo, hi = model.limits[:, 0], model.limits[:, 1]
+    reach = lambda x: -d @ robot.predict(x[None])[0]  # noqa: E731 - minus the point's reach along d, mm
+    far = min((minimize(reach, x0, bounds=list(zip(lo, hi)), method="L-BFGS-B") for x0 in q[:3]), key=lambda r: r.fun)
+    beyond = robot.predict(far.x[None]) + 1.0 * d  # 1 mm past the farthest point found along d
+    out = compensate(robot, beyond, far.x[None])
+    assert not out.reachable.any() and "still converging" not in out.reason[0], (seed, out.reason)
+    assert not compensate(robot, beyond, far.x[None], max_iter=MAX_ADVISED_ITER).reachable.any(), seed
