@@ -110,6 +110,63 @@ def _forked(fn: Callable[[T], R], items: list[T], k: int, shared: Sequence[objec
     return [results[i] for i in range(len(items))]
 
 
+class Ahead:
+    """fn() computed in a forked child while this process goes on (a search whose outcome is rarely taken, begun
+    beside the work that assumes it is not); result() waits for it. Without fork, or when the child died without
+    answering, fn() is computed here, as it would be in order. The `shared` objects come back as themselves (pmap)."""
+
+    def __init__(self, fn: Callable[[], R], shared: Sequence[object] = ()):
+        self.fn, self.shared, self.pid, self.read = fn, shared, None, None
+        if not hasattr(os, "fork"):
+            return
+        parent = os.getpid()
+        read, write = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: fn's answer pickled into the pipe, then gone without the parent's clean-ups
+            os.close(read)
+            _die_with(parent)
+            code = 0
+            try:
+                try:
+                    out = (True, fn())
+                except BaseException as exc:  # noqa: BLE001 - carried to the parent, raised there
+                    out = (False, _portable(exc))
+                with os.fdopen(write, "wb") as f:
+                    _Pickler(f, shared).dump(out)
+            except BaseException:  # noqa: BLE001 - the parent sees a child that gave no answer
+                code = 1
+            finally:
+                os._exit(code)
+        os.close(write)
+        self.pid, self.read = pid, read
+
+    def result(self) -> R:
+        """fn()'s answer (its exception raised here)."""
+        if self.pid is None:
+            return self.fn()
+        with os.fdopen(self.read, "rb") as f:
+            data = f.read()
+        os.waitpid(self.pid, 0)
+        self.pid = None
+        if not data:  # killed (out of memory, a signal): done here, in order
+            return self.fn()
+        ok, value = _Unpickler(data, self.shared).load()
+        if not ok:
+            raise value
+        return value
+
+    def cancel(self) -> None:
+        """Stops the child when its answer is no longer wanted (an exception on the way)."""
+        if self.pid is not None:
+            try:
+                os.kill(self.pid, signal.SIGKILL)
+                os.waitpid(self.pid, 0)
+            except OSError:
+                pass
+            os.close(self.read)
+            self.pid = None
+
+
 def _taken(queue: int) -> Iterator[int]:
     """The indices this process takes from the queue pipe, one at a time, until it is empty."""
     while len(b := os.read(queue, 4)) == 4:

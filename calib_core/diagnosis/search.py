@@ -18,7 +18,7 @@ from ..effects.structure import session_clock, step_candidates
 from ..identify import Calibration, identify
 from ..io import Measurements
 from ..model import RobotModel
-from ..parallel import one_blas_thread, pmap
+from ..parallel import Ahead, one_blas_thread, pmap
 from ..select import select_geometry
 from .evidence import ACCEPT_ALPHA, HOLDOUT_ALPHA, _better, _p, holdout_gain, holdout_ms
 from .findings import (SIGNIFICANT_STD, STRONG_STD, _beyond, _chain, _finding, _judge_sizes, _who,
@@ -88,6 +88,8 @@ class _Search:
     untested: str | None = None  # what the deadline left untested, once it has passed
     play_memo: list = field(default_factory=list)  # the last play search: (model, x_ref, joints, plays), shared
     # with _sparser's search, whose first round asks again on the same model
+    ahead: bool = False  # _sparser's search begun in a child process while this one goes on as if not taken (settle)
+    pending: list = field(default_factory=list)  # that search under way (one at most): (Ahead, fit.workers before)
 
     def late(self, what: str) -> bool:
         """True once the deadline has passed; the first call after it records `what` was left untested."""
@@ -195,8 +197,13 @@ class _Search:
             alike = _merge_alike(alike, forms)
             if isinstance(c.effect, SessionStep):
                 c, trial = _refine_step(c, trial, others, self.current, sigma, model, meas, fit, x_ref)
-            elif isinstance(c.effect, LoadCompliance) and len(c.effect.joints) > 1 and self._sparser(c, trial):
-                return True
+            elif isinstance(c.effect, LoadCompliance) and len(c.effect.joints) > 1:
+                if self.ahead and not self.pending:
+                    self.pending.append((Ahead(lambda: self._sparser_state(c, trial), self.fit.shared),
+                                         self.fit.workers))
+                    self.fit = dataclasses.replace(self.fit, workers=1)  # one process each until it ends (settle)
+                elif self._sparser(c, trial):
+                    return True
             keep = [i for i in mine if _cause(self.chosen[i]) != _cause(c.effect)]  # without the form it replaced
             self.chosen, self.findings = [self.chosen[i] for i in keep], [self.findings[i] for i in keep]
             self.findings.append(_finding(c, model, self.current, trial, self.floor, alike, meas))
@@ -232,15 +239,15 @@ class _Search:
         sub = dataclasses.replace(
             self, pool=[e for e in self.pool if len(e.joints) <= 1 or isinstance(e, SessionStep)],
             chosen=list(self.chosen), findings=list(self.findings), rejected=[])
+        before = list(self.fit.last)  # a search not taken is a comparison the search does not go on from
         for _ in range(MAX_SPARSE):
             if not sub._round():
                 break
         self.untested = self.untested or sub.untested
         new = sub.chosen[len(self.chosen):]
-        if not new or sum(len(e.parameter_names(self.model)) for e in new) >= n_spread:
-            return False
         hs, ht = sub.current.metrics()["holdout_rms_mm"], trial.metrics()["holdout_rms_mm"]
-        if hs >= ht:
+        if not _sparser_better(sum(len(e.parameter_names(self.model)) for e in new), n_spread, hs, ht):
+            self.fit.last[:] = before
             return False
         p, _ = holdout_gain(trial, sub.current)
         names = ", ".join(e.label(self.model) for e in new)
@@ -250,6 +257,46 @@ class _Search:
         self.rejected += sub.rejected
         self.chosen, self.findings, self.current, self.x_ref = sub.chosen, sub.findings, sub.current, sub.x_ref
         return True
+
+    _STATE = ("chosen", "findings", "current", "x_ref", "rejected", "untested", "play_memo")
+
+    def _state(self) -> dict:
+        """What the search holds (and its fit starts from), to be restored as it was."""
+        return {**{k: list(v) if isinstance(v := getattr(self, k), list) else v for k in self._STATE},
+                "last": list(self.fit.last)}
+
+    def _restore(self, state: dict) -> None:
+        for k in self._STATE:
+            setattr(self, k, state[k])
+        self.fit.last[:] = state["last"]
+
+    def _sparser_state(self, c: Candidate, trial: Calibration) -> tuple[bool, dict]:
+        """_sparser in a child process (Ahead), in that process alone (the search goes on in the other): whether it
+        was taken and the state it left."""
+        workers, self.fit = self.fit.workers, dataclasses.replace(self.fit, workers=1)
+        taken = self._sparser(c, trial)
+        self.fit = dataclasses.replace(self.fit, workers=workers)
+        return taken, self._state()
+
+    def settle(self) -> bool:
+        """Waits for the _sparser search begun ahead; True if it was taken: the search is then where that left it,
+        to go on from there as in order (what was done meanwhile assumed it was not). Not taken, only what it left
+        untested counts, first, as in order."""
+        if not self.pending:
+            return False
+        ahead, workers = self.pending.pop()
+        taken, state = ahead.result()
+        self.fit = dataclasses.replace(self.fit, workers=workers)
+        if taken:
+            self._restore(state)
+        elif state["untested"]:
+            self.untested = state["untested"]
+        return taken
+
+    def cancel(self) -> None:
+        """Stops a _sparser search begun ahead (an exception on the way)."""
+        while self.pending:
+            self.pending.pop()[0].cancel()
 
     def revisit(self, report: Callable[[float, str], None]) -> None:
         """Test each finding again with the others in the model (_revisit), until nothing changes (3 passes)."""
@@ -418,8 +465,8 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     deadline: a time.monotonic() value after which the search fits no further model and the answer is finished
     with what it has confirmed so far (`Diagnosis.untested` says what was left; thousands of poses can take longer
     than a job may run). workers: processes for the search's independent parts (the play search per joint, rival
-    fits, the mass data's two starts; calib_core.parallel), the same answer as one (its numbers to rounding:
-    calib_core.parallel).
+    fits, the mass data's two starts, a search on single joints begun ahead of the spread cause's: _Search.settle;
+    calib_core.parallel), the same answer as one (its numbers to rounding: calib_core.parallel).
 
     loss 'auto' fits with the Huber loss when a first robust fit names outliers (the final model's are listed), else
     with plain least squares; poses flagged in runs of consecutive measurements, none absurdly far off, are
@@ -451,19 +498,46 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     # a step is a model extension only where the data say when (or in which order) each pose was measured; the row
     # order is a guess
     steps = step_candidates(meas, moving) if session_clock(meas)[1] != "row" else []
-    search = _Search(model, meas, sigma, alpha, fit, floor, named + steps, load_pool, geo, geo.x, deadline=deadline)
-    search.run(report)
-    search.revisit(report)
-    if search.chosen and search.identify_masses(notes, report) and search.run(report):
-        # the guessed mass data hid causes a load closer to the real one shows (an elastic humanoid: the joints'
-        # compliance is confirmed only once the lateral compliance's masses are identified): search on from there
-        search.revisit(report)
-        search.identify_masses(notes, report)
-    if search.masses_identified():  # what the causes did on the guessed masses, on the identified ones
-        search.revisit(report)
-        search.spread(notes, report)
-    while search.narrowed(report):  # each pass drops joints: the narrowed form's own shares decide the next
-        pass
+    search = _Search(model, meas, sigma, alpha, fit, floor, named + steps, load_pool, geo, geo.x, deadline=deadline,
+                     ahead=workers > 1)
+    before = list(notes)
+    try:
+        _searched(search, notes, report)
+        left = _left(search, notes, floor, note, basis, unexplained, report)
+        if search.settle():  # the sparser search begun ahead was taken: on from where it left the search, in order
+            notes[:] = before
+            _searched(search, notes, report)
+            left = _left(search, notes, floor, note, basis, unexplained, report)
+    finally:
+        search.cancel()
+    current, findings, rejected, named, floor, note, basis, structure_left = left
+    _chained_and_doubts(findings, geo, named, current, fit, search.x_ref, floor,
+                        None if deadline is not None and time.monotonic() > deadline else model)
+    _judge_sizes(current, findings, meas)
+    present_findings(current, findings)
+    current.unmodelled_mm = _unmodelled_mm(current, floor, structure_left)
+    if loss == "huber" and first is not None:
+        notes.insert(0, _outlier_note(meas, first.solution.outliers, current.solution.outliers))
+    nominal = selection.calibrations.get("registration") \
+        or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
+    d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,
+                  floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss,
+                  selection=selection.to_dict(), noise_model=meas.noise_source(), untested=search.untested)
+    if search.untested:
+        notes.insert(0, f"the search for causes stopped at its time budget; left untested: {search.untested}. What "
+                        f"is named was confirmed on held-out poses, but causes not reached were never tested: this "
+                        f"is not a complete answer (fewer poses, or a longer time budget, let it finish)")
+    d.explanation = explain(d, model)
+    report(1.0, "diagnosis done")
+    return d
+
+
+def _left(search: _Search, notes: list[str], floor: float, note: str, basis: str, unexplained: bool,
+          report: Callable[[float, str], None]) -> tuple:
+    """What the search's causes leave, and its correction (an `unexplained` finding) or, where it is noise-like, the
+    floor re-estimated (said in `notes`): (current, findings, rejected, named, floor, note, basis, structure_left),
+    named the model of the named causes."""
+    model, meas, fit, alpha, load_pool = search.model, search.meas, search.fit, search.alpha, search.load_pool
     found = {(f["kind"], tuple(f["joints"])) for f in search.findings}
     rejected = [r for r in search.rejected if (r["kind"], tuple(r["joints"])) not in found]
     current, chosen, findings, x_ref = search.current, search.chosen, search.findings, search.x_ref
@@ -505,25 +579,32 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                 notes.append("what the targets of a pose share: " + said)
             findings.append(_unexplained_finding(model, before, trial, floor, follows, basis, current, said))
         structure_left = _excess(current, floor) < alpha  # current or floor has changed
-    _chained_and_doubts(findings, geo, named, current, fit, search.x_ref, floor,
-                        None if deadline is not None and time.monotonic() > deadline else model)
-    _judge_sizes(current, findings, meas)
-    present_findings(current, findings)
-    current.unmodelled_mm = _unmodelled_mm(current, floor, structure_left)
-    if loss == "huber" and first is not None:
-        notes.insert(0, _outlier_note(meas, first.solution.outliers, current.solution.outliers))
-    nominal = selection.calibrations.get("registration") \
-        or identify(model, meas, free=("base", "tool"), loss=loss, folds=folds)
-    d = Diagnosis(calibration=current, geometric=geo, nominal=nominal, noise_floor_mm=floor, noise_note=note,
-                  floor_basis=basis, findings=findings, rejected=rejected, notes=notes, loss=loss,
-                  selection=selection.to_dict(), noise_model=meas.noise_source(), untested=search.untested)
-    if search.untested:
-        notes.insert(0, f"the search for causes stopped at its time budget; left untested: {search.untested}. What "
-                        f"is named was confirmed on held-out poses, but causes not reached were never tested: this "
-                        f"is not a complete answer (fewer poses, or a longer time budget, let it finish)")
-    d.explanation = explain(d, model)
-    report(1.0, "diagnosis done")
-    return d
+    return current, findings, rejected, named, floor, note, basis, structure_left
+
+
+def _sparser_better(n_new: int, n_spread: int, held_out_new_mm: float, held_out_spread_mm: float) -> bool:
+    """_sparser takes the causes on single joints it found (n_new parameters, none found: 0) for the spread cause
+    when they are fewer and better on held-out poses."""
+    return 0 < n_new < n_spread and held_out_new_mm < held_out_spread_mm
+
+
+def _searched(search: _Search, notes: list[str], report: Callable[[float, str], None]) -> None:
+    """The search's stages: rounds of candidates (the first ones may begin _sparser's search ahead: _Search.settle),
+    each finding revisited, the mass data under the compliances found and a search on from them, the spread and the
+    narrowed forms."""
+    search.run(report)
+    search.ahead = False
+    search.revisit(report)
+    if search.chosen and search.identify_masses(notes, report) and search.run(report):
+        # the guessed mass data hid causes a load closer to the real one shows (an elastic humanoid: the joints'
+        # compliance is confirmed only once the lateral compliance's masses are identified): search on from there
+        search.revisit(report)
+        search.identify_masses(notes, report)
+    if search.masses_identified():  # what the causes did on the guessed masses, on the identified ones
+        search.revisit(report)
+        search.spread(notes, report)
+    while search.narrowed(report):  # each pass drops joints: the narrowed form's own shares decide the next
+        pass
 
 
 def _follows_and_corrections(search: _Search, current: Calibration, chosen: list[Effect], x_ref: np.ndarray,

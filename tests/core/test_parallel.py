@@ -1,7 +1,8 @@
-"""calib_core.parallel.pmap: the loop's answers from forked processes, errors and shared objects carried back, helpers
-that die with their parent; and a diagnosis in two processes giving the answer of one."""
+"""calib_core.parallel.pmap and Ahead: the loop's answers from forked processes, errors and shared objects carried
+back, helpers that die with their parent; and a diagnosis in two processes giving the answer of one."""
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import subprocess
@@ -12,10 +13,11 @@ import time
 import numpy as np
 import pytest
 
+from calib_core.datasets import available, motoman_leica
 from calib_core.diagnosis import diagnose
 from calib_core.diagnosis.masses import _mass_driven
 from calib_core.model import parse_model
-from calib_core.parallel import MAX_ITEMS, one_blas_thread, pmap
+from calib_core.parallel import MAX_ITEMS, Ahead, one_blas_thread, pmap
 from calib_core.robots import spray7
 from calib_world import World
 from calib_world.scenarios import hide
@@ -210,3 +212,56 @@ def test_a_diagnosis_in_two_processes_gives_the_answer_of_one():
         np.testing.assert_allclose(v, u, **close)
     if any(_mass_driven(e) for e in a.effects):  # the doubt of the mass data is on the answer
         assert len(a.mass_doubt) == 3, (seed, kind)
+
+
+def test_ahead_computes_in_another_process_and_carries_back_answers_errors_and_shared_objects():
+    model = parse_model(spray7())
+    here = os.getpid()
+    got, pid = Ahead(lambda: (model, os.getpid()), shared=(model,)).result()
+    assert got is model and pid != here
+    with pytest.raises(ZeroDivisionError):
+        Ahead(lambda: 1 / 0).result()
+
+
+def test_ahead_done_here_when_its_child_died_and_stopped_when_cancelled():
+    parent = os.getpid()
+
+    def killed():
+        if os.getpid() != parent:
+            os.kill(os.getpid(), signal.SIGKILL)  # out of memory, say
+        return 42
+
+    assert Ahead(killed).result() == 42
+    slow = Ahead(lambda: time.sleep(60))
+    pid = slow.pid
+    slow.cancel()
+    assert slow.pid is None and not _alive(pid)
+
+
+@pytest.mark.skipif(not available(), reason="../shared/datasets not present")
+@pytest.mark.parametrize("taken", [True, False])
+def test_a_sparser_search_begun_ahead_gives_the_answer_in_order(monkeypatch, taken):
+    """On half the Motoman's poses (drawn by seed 2, without the measurement order) the search takes the compliance
+    of every joint on identified loads, which asks _sparser's search for causes on single joints: two processes
+    begin it in a child while the search goes on as if it were not taken (_Search.settle). It is taken on this data
+    (J-scales and a compliance do better; the work done meanwhile is done again from where it left the search);
+    forced not taken, the search keeps what it did meanwhile. Either way the answer is that of one process."""
+    from calib_core.diagnosis import search as S
+    from calib_core.io import parse_measurements
+
+    if not taken:
+        monkeypatch.setattr(S, "_sparser_better", lambda n_new, n_spread, hs, ht: False)
+    begun = []
+    monkeypatch.setattr(S, "Ahead", lambda fn, shared: begun.append(1) or Ahead(fn, shared))
+    ds = motoman_leica()
+    model = parse_model(ds.model)
+    meas = parse_measurements(ds.csv_text, model)
+    half = np.sort(np.random.default_rng(2).permutation(meas.n_poses)[:meas.n_poses // 2])
+    meas = dataclasses.replace(meas.subset(half), sequence=None)
+    one, two = diagnose(model, meas, workers=1), diagnose(model, meas, workers=2)
+    assert begun, "the sparser search was not begun ahead"
+    assert [(f["kind"], f["joints"], f["evidence"]) for f in two.findings] == \
+        [(f["kind"], f["joints"], f["evidence"]) for f in one.findings]
+    assert two.explanation == one.explanation and two.rejected == one.rejected
+    np.testing.assert_allclose(two.calibration.x, one.calibration.x, rtol=1e-9, atol=1e-9)
+    assert any("on single joints do better" in r["why"] for r in one.rejected) == taken, one.rejected
