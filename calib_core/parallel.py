@@ -13,6 +13,7 @@ import functools
 import io
 import os
 import pickle
+import select
 import signal
 import struct
 import traceback
@@ -139,6 +140,10 @@ class Ahead:
                 os._exit(code)
         os.close(write)
         self.pid, self.read = pid, read
+
+    def ready(self) -> bool:
+        """Whether the answer is there to read (the child is writing it, or has died): result() then waits little."""
+        return self.pid is None or bool(select.select([self.read], [], [], 0)[0])
 
     def result(self) -> R:
         """fn()'s answer (its exception raised here)."""

@@ -66,6 +66,10 @@ would): the one false finding left in 1400 no-effect worlds of issue 34 (1.2x th
 angle, p = 2.2e-4)."""
 
 
+class _Settled(Exception):
+    """The _sparser search begun ahead was taken while the search went on: it is back where that left it."""
+
+
 @dataclass
 class _Search:
     """The greedy search for causes: the model with the causes chosen so far, what was found and what was turned
@@ -92,7 +96,9 @@ class _Search:
     pending: list = field(default_factory=list)  # that search under way (one at most): (Ahead, fit.workers before)
 
     def late(self, what: str) -> bool:
-        """True once the deadline has passed; the first call after it records `what` was left untested."""
+        """True once the deadline has passed; the first call after it records `what` was left untested. Also where the
+        search looks whether a search begun ahead has ended (_poll)."""
+        self._poll()
         if self.deadline is None or time.monotonic() < self.deadline:
             return False
         self.untested = self.untested or what
@@ -292,6 +298,12 @@ class _Search:
         elif state["untested"]:
             self.untested = state["untested"]
         return taken
+
+    def _poll(self) -> None:
+        """Settles a _sparser search begun ahead as soon as it has ended: not taken, the search goes on in two
+        processes again; taken, what was done meanwhile is dropped at once (_Settled)."""
+        if self.pending and self.pending[0][0].ready() and self.settle():
+            raise _Settled
 
     def cancel(self) -> None:
         """Stops a _sparser search begun ahead (an exception on the way)."""
@@ -502,9 +514,13 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                      ahead=workers > 1)
     before = list(notes)
     try:
-        _searched(search, notes, report)
-        left = _left(search, notes, floor, note, basis, unexplained, report)
-        if search.settle():  # the sparser search begun ahead was taken: on from where it left the search, in order
+        try:
+            _searched(search, notes, report)
+            left = _left(search, notes, floor, note, basis, unexplained, report)
+            taken = search.settle()
+        except _Settled:
+            taken = True
+        if taken:  # the sparser search begun ahead was taken: on from where it left the search, in order
             notes[:] = before
             _searched(search, notes, report)
             left = _left(search, notes, floor, note, basis, unexplained, report)
