@@ -63,25 +63,7 @@ def _forked(fn: Callable[[T], R], items: list[T], k: int, shared: Sequence[objec
     os.close(queue_w)
     children, parent = [], os.getpid()
     for _ in range(1, k):
-        read, write = os.pipe()
-        pid = os.fork()
-        if pid == 0:  # the child: its share, pickled into the pipe, then gone without the parent's clean-ups
-            os.close(read)
-            _die_with(parent)
-            code = 0
-            try:
-                try:
-                    out = [(i, True, fn(items[i])) for i in _taken(queue_r)]
-                except BaseException as exc:  # noqa: BLE001 - carried to the parent, raised there
-                    out = [(-1, False, _portable(exc))]
-                with os.fdopen(write, "wb") as f:
-                    _Pickler(f, shared).dump(out)
-            except BaseException:  # noqa: BLE001 - the parent sees a child that gave no answer
-                code = 1
-            finally:
-                os._exit(code)
-        os.close(write)
-        children.append((pid, read))
+        children.append(_fork(lambda: [(i, True, fn(items[i])) for i in _taken(queue_r)], parent, shared))
     results: dict[int, R] = {}
     error: BaseException | None = None
     try:
@@ -118,28 +100,8 @@ class Ahead:
 
     def __init__(self, fn: Callable[[], R], shared: Sequence[object] = ()):
         self.fn, self.shared, self.pid, self.read = fn, shared, None, None
-        if not hasattr(os, "fork"):
-            return
-        parent = os.getpid()
-        read, write = os.pipe()
-        pid = os.fork()
-        if pid == 0:  # the child: fn's answer pickled into the pipe, then gone without the parent's clean-ups
-            os.close(read)
-            _die_with(parent)
-            code = 0
-            try:
-                try:
-                    out = (True, fn())
-                except BaseException as exc:  # noqa: BLE001 - carried to the parent, raised there
-                    out = (False, _portable(exc))
-                with os.fdopen(write, "wb") as f:
-                    _Pickler(f, shared).dump(out)
-            except BaseException:  # noqa: BLE001 - the parent sees a child that gave no answer
-                code = 1
-            finally:
-                os._exit(code)
-        os.close(write)
-        self.pid, self.read = pid, read
+        if hasattr(os, "fork"):
+            self.pid, self.read = _fork(lambda: [(0, True, fn())], os.getpid(), shared)
 
     def ready(self) -> bool:
         """Whether the answer is there to read (the child is writing it, or has died): result() then waits little."""
@@ -155,7 +117,7 @@ class Ahead:
         self.pid = None
         if not data:  # killed (out of memory, a signal): done here, in order
             return self.fn()
-        ok, value = _Unpickler(data, self.shared).load()
+        ((_, ok, value),) = _Unpickler(data, self.shared).load()
         if not ok:
             raise value
         return value
@@ -170,6 +132,30 @@ class Ahead:
                 pass
             os.close(self.read)
             self.pid = None
+
+
+def _fork(answers: Callable[[], list], parent: int, shared: Sequence[object]) -> tuple[int, int]:
+    """A child that pickles answers() ([(index, True, value)], or [(-1, False, the exception)] when it raises) into a
+    pipe and is gone without the parent's clean-ups; (its pid, the pipe's end to read) here."""
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(read)
+        _die_with(parent)
+        code = 0
+        try:
+            try:
+                out = answers()
+            except BaseException as exc:  # noqa: BLE001 - carried to the parent, raised there
+                out = [(-1, False, _portable(exc))]
+            with os.fdopen(write, "wb") as f:
+                _Pickler(f, shared).dump(out)
+        except BaseException:  # noqa: BLE001 - the parent sees a child that gave no answer
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(write)
+    return pid, read
 
 
 def _taken(queue: int) -> Iterator[int]:

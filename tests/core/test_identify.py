@@ -52,8 +52,11 @@ def test_noisy_estimates_lie_within_reported_uncertainty(robot, seed):
     cal = identify(model, meas, folds=5)
     z = _compare(cal, twin)
     zs = np.array(list(z.values()))
-    # each parameter within its reported 3-sigma (with ~25 correlated parameters allow two past 3, none past 4.5)
-    assert (np.abs(zs) > 3).sum() <= 2 and np.abs(zs).max() < 4.5, (seed, zs.round(2))
+    # each parameter within 4.5 reported std: P(|z| > 4.5) = 6.8e-6, a false alarm in 1e4 runs over ~25 parameters.
+    # (A rule "at most two past 3" failed a CI run, seed 1381796579 on arm6: A3.theta 4.31 and A4.a 4.21, correlated
+    # 0.94, one event counted twice, beside base.x 3.26. Over 200 seeds the largest |z| of a run has the quantiles of
+    # 24 independent normals, 3.56 at the 99th percentile: the std is honest.)
+    assert np.abs(zs).max() < 4.5, (seed, zs.round(2))
     # and the whole error vector is consistent with the reported covariance: chi-square with p dof
     keep = [k for k, i in enumerate(cal.free) if cal.names[i] in z]
     err = np.array([cal.x[cal.free[k]] - twin.x_true[cal.free[k]] for k in keep])
