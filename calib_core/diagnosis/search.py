@@ -244,7 +244,7 @@ class _Search:
         n_spread = len(c.effect.parameter_names(self.model))
         sub = dataclasses.replace(
             self, pool=[e for e in self.pool if len(e.joints) <= 1 or isinstance(e, SessionStep)],
-            chosen=list(self.chosen), findings=list(self.findings), rejected=[])
+            chosen=list(self.chosen), findings=list(self.findings), rejected=[], ahead=False, pending=[])
         before = list(self.fit.last)  # a search not taken is a comparison the search does not go on from
         for _ in range(MAX_SPARSE):
             if not sub._round():
@@ -288,6 +288,7 @@ class _Search:
         """Waits for the _sparser search begun ahead; True if it was taken: the search is then where that left it,
         to go on from there as in order (what was done meanwhile assumed it was not). Not taken, only what it left
         untested counts, first, as in order."""
+        self.ahead = False  # once: the search goes on in order from here
         if not self.pending:
             return False
         ahead, workers = self.pending.pop()
@@ -514,16 +515,15 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
                      ahead=workers > 1)
     before = list(notes)
     try:
-        try:
-            _searched(search, notes, report)
-            left = _left(search, notes, floor, note, basis, unexplained, report)
-            taken = search.settle()
-        except _Settled:
-            taken = True
-        if taken:  # the sparser search begun ahead was taken: on from where it left the search, in order
+        while True:  # twice at most: a sparser search begun ahead and taken, the search on from where it left it
+            try:
+                _searched(search, notes, report)
+                left = _left(search, notes, floor, note, basis, unexplained, report)
+                if not search.settle():
+                    break
+            except _Settled:
+                pass
             notes[:] = before
-            _searched(search, notes, report)
-            left = _left(search, notes, floor, note, basis, unexplained, report)
     finally:
         search.cancel()
     current, findings, rejected, named, floor, note, basis, structure_left = left

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -239,18 +240,30 @@ def test_ahead_done_here_when_its_child_died_and_stopped_when_cancelled():
 
 
 @pytest.mark.skipif(not available(), reason="../shared/datasets not present")
+class _Eager(Ahead):
+    """An Ahead whose child has ended before the search goes on: the search settles it at its next look (late()),
+    within its first rounds (a job's attempt 2 on the Motoman did, and began a second one: '_Settled' escaped)."""
+
+    def __init__(self, fn, shared=()):
+        super().__init__(fn, shared)
+        if self.pid is not None:
+            select.select([self.read], [], [])
+
+
 @pytest.mark.parametrize("draw, taken", [(2, True), (5, False)])
-def test_a_sparser_search_begun_ahead_gives_the_answer_in_order(monkeypatch, draw, taken):
+@pytest.mark.parametrize("eager", [False, True])
+def test_a_sparser_search_begun_ahead_gives_the_answer_in_order(monkeypatch, draw, taken, eager):
     """On a third of the Motoman's poses (drawn by `draw`, without the measurement order) the search takes the
     compliance of every joint on identified loads, which asks _sparser's search for causes on single joints: two
     processes begin it in a child while the search goes on as if it were not taken (_Search.settle). On draw 2 it is
     taken (the work done meanwhile is dropped and the search goes on from where the child left it), on draw 5 not
-    (the search keeps what it did meanwhile). Either way the answer is that of one process."""
+    (the search keeps what it did meanwhile). Either way, and whether the search begun ahead ends late or at once
+    (eager), the answer is that of one process."""
     from calib_core.diagnosis import search as S
     from calib_core.io import parse_measurements
 
     begun = []
-    monkeypatch.setattr(S, "Ahead", lambda fn, shared: begun.append(1) or Ahead(fn, shared))
+    monkeypatch.setattr(S, "Ahead", lambda fn, shared: begun.append(1) or (_Eager if eager else Ahead)(fn, shared))
     ds = motoman_leica()
     model = parse_model(ds.model)
     meas = parse_measurements(ds.csv_text, model)
@@ -263,3 +276,47 @@ def test_a_sparser_search_begun_ahead_gives_the_answer_in_order(monkeypatch, dra
     assert two.explanation == one.explanation and two.rejected == one.rejected
     np.testing.assert_allclose(two.calibration.x, one.calibration.x, rtol=1e-9, atol=1e-9)
     assert any("on single joints do better" in r["why"] for r in one.rejected) == taken, one.rejected
+
+
+class _Done:
+    """A search begun ahead that has ended with `answer` (Ahead's face: ready, result, cancel)."""
+
+    def __init__(self, answer):
+        self.answer, self.cancelled = answer, False
+
+    def ready(self):
+        return True
+
+    def result(self):
+        return self.answer
+
+    def cancel(self):
+        self.cancelled = True
+
+
+def _bare_search(**kw):
+    from calib_core.diagnosis.fitter import _Fitter
+    from calib_core.diagnosis.search import _Search
+
+    fit = _Fitter(model=None, meas=None, loss=None, folds=5, free=None, prior_scale=1.0, workers=1)
+    return _Search(model=None, meas=None, sigma=None, alpha=0.01, fit=fit, floor=0.1, pool=[], load_pool={},
+                   current="mine", x_ref=None, ahead=True, **kw)
+
+
+@pytest.mark.parametrize("taken", [True, False])
+def test_a_search_begun_ahead_is_settled_once(taken):
+    """Settled (taken or not), the search begins no second one: on the Motoman with its order (all 586 poses) a
+    search taken within the first rounds left `ahead` on, the search from where it left began another, and its
+    settling escaped the diagnosis ('_Settled', a failed job). Taken, the state comes back and _poll says so."""
+    from calib_core.diagnosis.search import _Settled
+
+    state = {"chosen": ["c"], "findings": [{}], "current": "theirs", "x_ref": None, "rejected": [], "untested": None,
+             "play_memo": [], "last": []}
+    search = _bare_search(pending=[(_Done((taken, state)), 2)])
+    if taken:
+        with pytest.raises(_Settled):
+            search._poll()
+    else:
+        search._poll()
+    assert not search.ahead and not search.pending and search.fit.workers == 2
+    assert search.current == ("theirs" if taken else "mine") and search.chosen == (["c"] if taken else [])
