@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import tempfile
 import threading
 import time
 
@@ -43,7 +44,15 @@ def start_early() -> None:
     if context().get_start_method() == "forkserver":
         from multiprocessing import forkserver
 
-        forkserver.ensure_running()
+        try:
+            forkserver.ensure_running()
+        except OSError as exc:  # its socket lives in a directory under TMPDIR: a Unix socket path holds 107 bytes
+            if "AF_UNIX path too long" not in str(exc):
+                raise
+            tmp = tempfile.gettempdir()
+            raise SystemExit(f"calib serve: the temporary directory {tmp} ({len(tmp)} characters) is too long for "
+                             f"the fork server's socket (a Unix socket's path holds at most 107 bytes, and the "
+                             f"socket adds about 32 to it): set TMPDIR to a shorter directory, such as /tmp") from None
 
 
 RESTART_WAIT_S = 0.2

@@ -4,6 +4,8 @@ from __future__ import annotations
 import sqlite3
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -104,10 +106,22 @@ def test_a_stopped_server_leaves_nothing_in_the_temporary_directory(tmp_path):
     the fork server's socket directory (pymp-*) used to stay behind in /tmp at every stop."""
     from .conftest import Server
 
-    tmp = tmp_path / "tmp"
-    tmp.mkdir()
-    s = Server(f"sqlite:///{tmp_path / 'calib.db'}", tmp_path / "server.log", TMPDIR=tmp)
+    tmp = Path(tempfile.mkdtemp(prefix="calib-t"))  # short: the fork server's socket path must fit in 107 bytes, and
+    s = Server(f"sqlite:///{tmp_path / 'calib.db'}", tmp_path / "server.log", TMPDIR=tmp)  # tmp_path grows with
+    # pytest's run count (a clean clone's run 103 of this machine made it 109: the server refused to start)
     assert [p.name for p in tmp.iterdir() if p.name.startswith("pymp-")], "the fork server's directory, while up"
     s.stop()
     assert s.p.returncode == 128 + 15, (s.p.returncode, s.output()[-2000:])
     assert not list(tmp.iterdir()), list(tmp.iterdir())
+    tmp.rmdir()
+
+
+def test_a_temporary_directory_too_long_for_the_fork_servers_socket_is_said(tmp_path):
+    """A TMPDIR whose path leaves no room for the fork server's socket (a Unix socket's path holds 107 bytes) stops
+    `calib serve` with one line saying so and what to do, not a traceback."""
+    tmp = tmp_path / ("t" * 90)
+    tmp.mkdir()
+    r = calib("serve", "--port", "0", env={**base_env(f"sqlite:///{tmp_path / 'c.db'}"), "TMPDIR": str(tmp)})
+    assert r.returncode != 0 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert f"the temporary directory {tmp} ({len(str(tmp))} characters) is too long" in r.stderr, r.stderr[-2000:]
+    assert "set TMPDIR to a shorter directory" in r.stderr
