@@ -197,20 +197,25 @@ class EncoderScale(Cause):
 
 @dataclass(frozen=True)
 class ReHoming(Cause):
-    """The joint was re-homed during the session: from time t0 + at_fraction (t_end - t0) of the campaign
-    on, its zero is off by `step` (rad or mm)."""
+    """The joint was re-homed during the session: from `at_time` (s since the epoch) on, its zero is off by `step`
+    (rad or mm). The time is the world's, not a share of whatever is measured: poses measured later (validation,
+    compensation) see the step where the calibration saw it."""
 
     joint: int | str = 0
     step: float = 0.0
-    at_fraction: float = 0.5
+    at_time: float = 0.0
     magnitude: ClassVar[tuple] = ("step",)
     kind = "rehoming_step"
 
+    @classmethod
+    def within(cls, joint, step: float, share: float, times) -> "ReHoming":
+        """Re-homed at `share` (0..1) of the session whose timestamps (s) are `times`."""
+        t = np.asarray(times, float)
+        return cls(joint, step, float(t[0] + share * (t[-1] - t[0])))
+
     def joint_offset(self, ctx):
         j = joint_index(ctx.robot, self.joint)
-        t = ctx.time
-        t_jump = t[0] + self.at_fraction * (t[-1] - t[0])
-        return _offset(ctx, j, np.where(t >= t_jump, self.step, 0.0))
+        return _offset(ctx, j, np.where(np.asarray(ctx.time, float) >= self.at_time, self.step, 0.0))
 
 
 @dataclass(frozen=True)

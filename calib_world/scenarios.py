@@ -142,7 +142,8 @@ def _candidates(world: World, kind: str, q, cols, rng) -> list:
     elif kind == "base_tilt":
         out = [BaseTilt(1e-7)]
     elif kind == "rehoming_step":
-        out = [ReHoming(j, _unit(r, j, 1e-4, 1e-2) * sign(), float(rng.uniform(0.3, 0.7))) for j in moving]
+        out = [ReHoming.within(j, _unit(r, j, 1e-4, 1e-2) * sign(), float(rng.uniform(0.3, 0.7)), cols.timestamp)
+               for j in moving]
     elif kind == "cable_force":
         for j in revolute:
             for o in revolute:

@@ -92,8 +92,9 @@ def test_a_pose_timed_where_a_step_may_lie_is_not_claimed_sure(seed):
     q = world.sample_joints(150, rng)
     j = int(rng.integers(1, model.n_joints))
     size = float(np.exp(rng.uniform(np.log(10.0), np.log(30.0))))
-    step, _ = size_cause(world, ReHoming(j, 1e-3, float(rng.uniform(0.3, 0.7))), size * world.noise_rms_mm(q), q,
-                         world.columns(q, None, False), world.absorbable_basis(q))
+    cols = world.columns(q, None, False)
+    step, _ = size_cause(world, ReHoming.within(j, 1e-3, float(rng.uniform(0.3, 0.7)), cols.timestamp),
+                         size * world.noise_rms_mm(q), q, cols, world.absorbable_basis(q))
     world.hide(step)
     meas = world.campaign(q=q).meas
     cal = diagnose(model, meas).calibration
