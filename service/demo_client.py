@@ -8,7 +8,6 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 
 import httpx
@@ -149,12 +148,6 @@ class Api:
             body = {"joints": _commands(model, meas.joints[rows]).tolist(), **_pose_fields(model, meas, rows)}
             if meas.payload is not None:
                 body["payload"] = meas.payload[rows].tolist()
-            if meas.temperature is not None:
-                body["temperature"] = meas.temperature[rows].tolist()
-            if meas.timestamp is not None:
-                body["timestamp"] = [datetime.fromtimestamp(t, timezone.utc).isoformat() for t in meas.timestamp[rows]]
-            if meas.sequence is not None:
-                body["sequence"] = meas.sequence[rows].tolist()
             r = self.call("POST", f"/calibrations/{cal_id}/predict", json=body).json()
             out[rows] = np.asarray(r["positions"], float) * LENGTH_TO_MM[model.length_unit]
         return out

@@ -125,6 +125,16 @@ class CompensateIn(BaseModel):
                                                   "(default the first setup of the calibration)")
     tau: dict[Label, TauValues] | None = Field(None, max_length=MAX_ROW, description=TAU_DESCRIPTION + "; one "
                                                "per target or program row", examples=[{"tau_J2": [412.5]}])
+    temperature: Finite | PerPose | None = Field(None, description="deg C (-60 to 200) when the program runs, one "
+                                                 "value or one per row; used only by a calibration that identified "
+                                                 "thermal drift (absent: the calibration's mean temperature)")
+    timestamp: str | list[str] | None = Field(None, description="ISO 8601 when the program runs, one or one per row; "
+                                              "used only by a calibration that identified a drift or a step in "
+                                              "time (absent: after every step)", max_length=MAX_POSES)
+    sequence: Finite | PerPose | None = Field(None, description="each row's place in the measurement order of the "
+                                              "calibration's data, one or one per row; used only by a calibration "
+                                              "with a step in that order (absent: after every step, the robot's "
+                                              "current state)")
     max_iter: int = Field(30, ge=1, le=MAX_COMPENSATE_ITER, description="Gauss-Newton iterations per target before "
                           "it is reported as not reached (a reason 'still converging' asks for more)")
 

@@ -289,6 +289,18 @@ def _tau(model, tau: dict | None, n_rows: int, errors: list) -> tuple[np.ndarray
     return out, max(0, len(found) - MAX_ERRORS)
 
 
+def _when(temperature, timestamp, sequence, n: int, errors: list) -> tuple:
+    """A request's per-pose temperature (deg C), time (s since the epoch) and sequence number, each (n,) or None, and
+    the count of range problems beyond those listed in `errors`."""
+    temp = _per_pose("temperature", temperature, n, errors)
+    stamps = _per_pose("timestamp", _epoch(timestamp, errors), n, errors)
+    order = _per_pose("sequence", sequence, n, errors)
+    more = _range_problems("sequence", sequence, -MAX_SEQUENCE, MAX_SEQUENCE, "(a place in the measurement order)",
+                           errors)
+    more += _range_problems("temperature", temperature, *TEMPERATURE_RANGE_C, "deg C", errors)
+    return temp, stamps, order, more
+
+
 def predict(model: RobotModel, c, joints: list[list[float]], payload, temperature=None, timestamp=None, target=None,
             setup=None, tau=None, sequence=None) -> tuple[list[list[float]], str, list[str]]:
     """Positions (model length unit) of the calibrated robot at actuated joints (model units), and notes on what
@@ -300,14 +312,9 @@ def predict(model: RobotModel, c, joints: list[list[float]], payload, temperatur
     tix, six = _labels(model, c.robot_state, target, setup, len(joints), errors)
     if isinstance(payload, list) and len(payload) != len(joints):
         errors.append({"field": "body.payload", "value": len(payload), "message": "one payload per pose, or one number"})
-    temp = _per_pose("temperature", temperature, len(joints), errors)
-    stamps = _per_pose("timestamp", _epoch(timestamp, errors), len(joints), errors)
-    order = _per_pose("sequence", sequence, len(joints), errors)
-    more = _joint_range_problems(model, joints, "joints", errors)
-    more += _range_problems("sequence", sequence, -MAX_SEQUENCE, MAX_SEQUENCE, "(a place in the measurement order)",
-                            errors)
+    temp, stamps, order, more = _when(temperature, timestamp, sequence, len(joints), errors)
+    more += _joint_range_problems(model, joints, "joints", errors)
     more += _range_problems("payload", payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
-    more += _range_problems("temperature", temperature, *TEMPERATURE_RANGE_C, "deg C", errors)
     torques, hidden = _tau(model, tau, len(joints), errors)
     _reject("the request does not fit the robot model", errors, more + hidden)
     q = model.expand_joints(np.asarray(joints, float) * model.joint_scale()[model.actuated])
@@ -346,7 +353,8 @@ def compensate(model: RobotModel, c, body) -> dict:
                 "follows its coupling (or is fixed) and cannot be locked" if j in model.joint_names else "unknown joint")
                 + f"; the actuated joints are {', '.join(names)}"} for j in body.locked_joints if j not in names]
     tix, six = _labels(model, c.robot_state, body.target, body.setup, len(rows or []), errors)
-    more = _joint_range_problems(model, rows, "program_joints" if program else "seed_joints", errors)
+    temp, stamps, order, more = _when(body.temperature, body.timestamp, body.sequence, len(rows or []), errors)
+    more += _joint_range_problems(model, rows, "program_joints" if program else "seed_joints", errors)
     if not program:
         more += _point_problems(body.targets, model.length_unit, errors)
     more += _range_problems("payload", body.payload, 0.0, MAX_PAYLOAD_KG, "kg", errors)
@@ -356,7 +364,8 @@ def compensate(model: RobotModel, c, body) -> dict:
     robot = restored(model, c)
     columns = Measurements(joints=model.expand_joints(q), points=np.zeros((len(q), 3)),
                            payload=None if body.payload is None else np.full(len(q), body.payload),
-                           target=tix, setup=six, setup_names=robot.setup_names, tau=torques)
+                           target=tix, setup=six, setup_names=robot.setup_names, tau=torques, temperature=temp,
+                           timestamp=stamps, sequence=order)
     locked = tuple(body.locked_joints)
     if program:
         result = nominal_to_calibrated(robot, None, q, locked=locked, columns=columns)

@@ -263,7 +263,7 @@ def shown(p: dict, angle_unit: str = "deg") -> dict:
 
 def joint_size(p: dict) -> str | None:
     """A cause's parameter in the units of the plain-words summary: arc-min at the joint, arc-min per 100 N*m,
-    mm, ppm; None for a unit with no such reading."""
+    mm, ppm, mm or ppm per deg C (or per hour); None for a unit with no such reading."""
     u = str(p.get("unit") or "").replace(" ", "")
     v, s = num(p.get("value")), num(p.get("std"))
     if v is None:
@@ -278,6 +278,13 @@ def joint_size(p: dict) -> str | None:
         return f"{_plain(v * 100, s and s * 100)} mm per 100 N"
     if u == "1":
         return f"{_plain(v * 1e6, s and s * 1e6)} ppm"
+    per = {"degC": "deg C", "h": "hour"}
+    if "/" in u and u.split("/", 1)[1] in per:  # a thermal drift: per degree, or per hour without a temperature
+        top, under = u.split("/", 1)
+        if top == "mm":
+            return f"{_plain(v, s)} mm per {per[under]}"
+        if top == "1":
+            return f"{_plain(v * 1e6, s and s * 1e6)} ppm per {per[under]}"
     return None
 
 

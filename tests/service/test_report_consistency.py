@@ -156,7 +156,8 @@ def causes_quote_the_findings_and_the_parameter_table(a: dict, html: str, text: 
                 f"{mm(f['holdout_rms_after_mm'])} mm: {pct(f['gain_pct'])} less") in causes
         if "effect_rms_mm" in f:  # not for `unexplained`
             assert f"At the tool: {mm(f['effect_rms_mm'])} mm RMS" in causes
-        said = [table[fp["name"]] for fp in f["parameters"]]  # the sizes are the table's, in plain-words units
+        said = [table[fp["name"]] for fp in f["parameters"]  # the sizes are the table's, in plain-words units
+                if joint_size(table[fp["name"]]) is not None]  # (mass data has none)
         for group in ([p for p in said if abs(p["value"]) >= 2 * p["std"]], [p for p in said if abs(p["value"]) <
                                                                            2 * p["std"]]):
             for p in group[:4]:  # the first four of each; the rest "and N more (the parameter table)"
@@ -179,6 +180,7 @@ def every_printed_figure_is_one_of_the_answer(a: dict, html: str, text: str) -> 
     values = _numbers(a, [])
     allowed_mm = {mm(v) for v in values} | {f"{v:.3g}" for v in values}
     allowed_mm |= {std_str(p.get("std")) for p in a["parameters"]}  # a finding's table: "value std unit" (a step's mm)
+    allowed_mm |= {joint_size(p).split()[0] for p in a["parameters"] if joint_size(p)}  # "0.138 mm per deg C"
     allowed_pct = {f"{v:.1f}" for v in values} | {f"{v:.0f}" for v in values}
     quoted = " ".join(_strings(a, []))
     for x in re.findall(rf"({NUM}) mm\b", text):

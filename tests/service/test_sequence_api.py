@@ -1,6 +1,6 @@
 """The measurement order over real HTTP (the `sequence` column, service/README): a CSV without timestamps whose
 `sequence` places a joint's re-homing; the auto job fits the step, and predict places each pose by the sequence
-it is given (none: the robot's current state, after the step)."""
+it is given (none: the robot's current state, after the step), and so does compensate."""
 from __future__ import annotations
 
 import dataclasses
@@ -23,8 +23,9 @@ def test_a_step_in_the_sequence_is_fitted_and_predicted_by_sequence(server, seed
     world = World(model, rng=rng)
     q = world.sample_joints(120, rng)
     j = int(rng.integers(1, model.n_joints - 1))
-    step, _ = size_cause(world, ReHoming(j, 1e-3, 0.6), 15.0 * world.noise_rms_mm(q), q,
-                         world.columns(q, None, False), world.absorbable_basis(q))
+    cols = world.columns(q, None, False)
+    step, _ = size_cause(world, ReHoming.within(j, 1e-3, 0.6, cols.timestamp), 15.0 * world.noise_rms_mm(q), q,
+                         cols, world.absorbable_basis(q))
     world.hide(step)
     meas = world.campaign(q=q).meas
     meas = dataclasses.replace(meas, timestamp=None, sequence=np.arange(meas.n_poses) * 10.0)
@@ -44,3 +45,20 @@ def test_a_step_in_the_sequence_is_fitted_and_predicted_by_sequence(server, seed
            for k, r in (("placed", placed), ("now", now))}
     noise = world.noise_rms_mm(q)
     assert np.sqrt(np.mean(off["placed"] ** 2)) < 4 * noise < np.sqrt(np.mean(off["now"] ** 2)), (off, noise, where)
+    # compensate places its rows the same way: targets measured before the re-homing, compensated at their sequence,
+    # are reached by the model at that sequence; the same joints in the robot's current state are off by the step
+    comp = server.client.post(f"/calibrations/{cal}/compensate", json={
+        "targets": meas.points[early].tolist(), "seed_joints": body["joints"], "sequence": (early * 10.0).tolist()})
+    assert comp.status_code == 200, comp.text
+    assert all(comp.json()["reachable"]), comp.json()
+    commands = {"joints": comp.json()["joints"]}
+    at = {k: np.linalg.norm(np.asarray(server.client.post(f"/calibrations/{cal}/predict", json={**commands, **extra})
+                                       .json()["positions"]) - meas.points[early], axis=1)
+          for k, extra in (("placed", {"sequence": (early * 10.0).tolist()}), ("now", {}))}
+    assert at["placed"].max() < 1e-3 < 4 * noise < np.sqrt(np.mean(at["now"] ** 2)), (at, noise, where)
+    bad = server.client.post(f"/calibrations/{cal}/compensate", json={
+        "targets": meas.points[early].tolist(), "seed_joints": body["joints"], "sequence": [1.0, 2.0],
+        "temperature": 500.0})
+    assert bad.status_code == 422, bad.text
+    fields = {e["field"] for e in bad.json()["errors"]}
+    assert {"body.sequence", "body.temperature"} <= fields, bad.json()
