@@ -155,8 +155,11 @@ def csv_text(model_doc) -> str:
     return write_measurements(Twin(m, 1).measure(n=150), m)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def server(tmp_path_factory):
+    """One `calib serve` on a fresh SQLite file for every module that takes it, per test process (a server's start
+    costs ~5 s of CPU: imports, the fork server's, warm job processes; once per module it was a tenth of the suite):
+    a test may count rows before and after, never assume an empty database."""
     d = tmp_path_factory.mktemp("srv")
     s = Server(f"sqlite:///{d / 'calib.db'}", d / "server.log")
     s.db_path = d / "calib.db"
