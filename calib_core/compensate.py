@@ -35,7 +35,8 @@ from typing import Sequence
 import numpy as np
 
 from . import kinematics as K
-from .effects.base import unloaded
+from .effects.base import Context, unloaded
+from .effects.joint_effects import Backlash
 from .identify import CalibratedRobot
 from .io import Measurements
 from .model import RobotModel
@@ -57,6 +58,9 @@ MAX_ADVISED_ITER = 200
 """...and a target that would need more than this many in all is called out of reach, not "still converging": the
 iiwa's stretched arm (A3-A7 at 0) put measured points 0.03-1.3 mm beyond its reach, their residual the same from
 iteration 10 to 120, and the reason asked for more iterations (the service's largest max_iter)."""
+FLANK_DOUBT_MM = 0.05
+"""A row is named in the flank note (flank_doubts) when not knowing which flank of a gear play it sits on costs more
+than this at the tool (RMS)."""
 
 
 @dataclass
@@ -214,9 +218,37 @@ def compensate(
         if lock:
             where += f"; with {', '.join(names[j] for j in lock)} locked"
         reason[i] = f"not reachable: {residual[i]:.3f} mm left after {iterations[i]} iterations ({where})"
-    notes = unloaded(model, robot.effects, _rows(columns, np.arange(N), model.expand_joints(q)))
+    rows = _rows(columns, np.arange(N), model.expand_joints(q))
+    notes = unloaded(model, robot.effects, rows) + flank_doubts(robot, rows)
     return Compensation(joints=q, residual_mm=residual, reachable=reachable, reason=reason, iterations=iterations,
                         notes=notes)
+
+
+def flank_doubts(robot: CalibratedRobot, rows: Measurements) -> list[str]:
+    """Sentences naming the rows where an identified gear play's flank is in doubt: the load there lies near where
+    it changes sign, within what the calibration could tell of that place (Backlash.flank_doubt), so the robot may
+    sit elsewhere in the play than the commands assume, by up to the play's swing at the tool. A hard play's cube
+    point at 2 % of its joint's load range was commanded on the model's soft flank and landed 0.38 mm off where the
+    other four landed within 0.07 mm (RESULTS 4.2): the answer said nothing."""
+    plays = [(e, v) for e, v in zip(robot.effects, robot.effect_values)
+             if isinstance(e, Backlash) and (e.switch_width > 0 or e.switch_draws)]
+    if not plays or not rows.n_poses:
+        return []
+    model = robot.model
+    ctx = Context.at(model, robot.basis_x, rows, robot.R0)
+    Jq = robot.chain(rows.joints, rows)[0].joint_jacobian()  # (N, 3, n) mm per rad or mm
+    out = []
+    for e, v in plays:
+        j = e.joints[0]
+        rms = np.sqrt(e.flank_doubt(ctx)) * 0.5 * abs(float(v[0])) * np.linalg.norm(Jq[:, :, j], axis=1)
+        doubt = np.flatnonzero(rms > FLANK_DOUBT_MM)
+        if doubt.size:
+            name, at = model.joint_names[j], ", ".join(map(str, doubt[:10])) + (" ..." if doubt.size > 10 else "")
+            out.append(f"{name}'s gear play: at row{'s' * (doubt.size > 1)} {at} the load on {name} is near where it "
+                       f"changes sign, so the robot may sit elsewhere in the play than these commands assume: up to "
+                       f"{rms.max():.3f} mm RMS at the tool (elsewhere under {FLANK_DOUBT_MM:g} mm); a pose with a "
+                       f"clear load on {name}, or a measured tau_{name}, settles it")
+    return out
 
 
 def _unreached(best: float, before: float, span: int, max_iter: int, tol_mm: float, effects: bool) -> str:
