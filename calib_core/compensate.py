@@ -36,6 +36,7 @@ import numpy as np
 
 from . import kinematics as K
 from .effects.base import Context, unloaded
+from .effects.cartesian_effects import held_at_edge
 from .effects.joint_effects import Backlash
 from .identify import CalibratedRobot
 from .io import Measurements
@@ -219,7 +220,7 @@ def compensate(
             where += f"; with {', '.join(names[j] for j in lock)} locked"
         reason[i] = f"not reachable: {residual[i]:.3f} mm left after {iterations[i]} iterations ({where})"
     rows = _rows(columns, np.arange(N), model.expand_joints(q))
-    notes = unloaded(model, robot.effects, rows) + flank_doubts(robot, rows)
+    notes = unloaded(model, robot.effects, rows) + held_at_edge(robot.effects, rows) + flank_doubts(robot, rows)
     return Compensation(joints=q, residual_mm=residual, reachable=reachable, reason=reason, iterations=iterations,
                         notes=notes)
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import datetime, timezone
 
 import numpy as np
 
@@ -317,6 +318,33 @@ class ThermalDrift(Effect):
 
     def explain(self, model):
         return "the robot drifts against the tracker as it warms up (or over time)"
+
+
+def held_at_edge(effects, meas) -> list[str]:
+    """Sentences naming the rows whose temperature (or time) lies outside what a thermal drift was fitted on: the
+    drift is held at its value at the nearer end there, never extrapolated (ThermalDrift.lo/hi), and predict and
+    compensate say so (a cell warmer than on the calibration's day got the edge's correction in silence)."""
+    out = []
+    for e in effects:
+        if not isinstance(e, ThermalDrift):
+            continue
+        col = meas.temperature if e.source == "temperature" else meas.timestamp
+        if col is None:
+            continue
+        col = np.asarray(col, float)
+        rows = np.flatnonzero((col < e.lo) | (col > e.hi))
+        if not rows.size:
+            continue
+        which = f"row{'s' * (rows.size > 1)} {', '.join(map(str, rows[:10]))}{' ...' if rows.size > 10 else ''}"
+        if e.source == "temperature":
+            at, fitted = f"{col[rows].min():.1f} to {col[rows].max():.1f} deg C", f"{e.lo:.1f} to {e.hi:.1f} deg C"
+        else:
+            utc = lambda t: datetime.fromtimestamp(t, timezone.utc).strftime("%Y-%m-%d %H:%M UTC")  # noqa: E731
+            at, fitted = f"{utc(col[rows].min())} to {utc(col[rows].max())}", f"{utc(e.lo)} to {utc(e.hi)}"
+        out.append(f"thermal drift: {which} {'are' if rows.size > 1 else 'is'} at {at}, outside the {fitted} it was "
+                   f"fitted on: there it is held at its value at the nearer end, not extrapolated (a calibration "
+                   f"measured over these {'temperatures' if e.source == 'temperature' else 'times'} extends it)")
+    return out
 
 
 @dataclass(frozen=True)

@@ -429,3 +429,44 @@ def test_targets_near_a_plays_switch_are_named(seed):
             assert set(near) <= rows, (rows, near, where)
         assert not rows & set(far), (rows, where)
     assert compensate(bare, bare.predict(q), q).notes == []  # no play, no note
+
+
+def test_a_thermal_drift_held_at_its_edge_is_said(seed):
+    """Rows warmer or colder than the calibration's temperatures (drawn): the drift is held at its value at the nearer
+    end, never extrapolated, and predict's and compensate's notes name exactly those rows (they did not)."""
+    from calib_core import kinematics as K
+    from calib_core.effects.cartesian_effects import ThermalDrift, held_at_edge
+    from calib_core.identify import CalibratedRobot
+    from calib_core.io import Measurements
+
+    rng = np.random.default_rng(seed)
+    lo, hi = sorted(rng.uniform(18.0, 30.0, 2))
+    drift = ThermalDrift((), source="temperature", ref=0.5 * (lo + hi), lo=lo, hi=hi)
+    robot = CalibratedRobot(SPRAY, K.nominal_vector(SPRAY), np.eye(3), (drift,),
+                            (np.r_[rng.normal(0.0, 0.1, 3), 1e-5],))
+    q = sample_uniform(SPRAY, 30, rng, margin=0.05)
+    temp = rng.uniform(lo - 5.0, hi + 5.0, len(q))
+    cols = Measurements(joints=q, points=np.zeros((len(q), 3)), temperature=temp)
+    outside = np.flatnonzero((temp < lo) | (temp > hi))
+    held = Measurements(joints=q, points=np.zeros((len(q), 3)), temperature=np.clip(temp, lo, hi))
+    assert np.allclose(robot.predict(q, cols), robot.predict(q, held))  # held at the edge, as before
+    notes = held_at_edge(robot.effects, cols)
+    if outside.size:
+        import re
+
+        rows = {int(r) for r in re.search(r"rows? ([\d, ]+)", notes[0]).group(1).split(", ")}
+        assert len(notes) == 1 and rows == set(outside[:10]), (notes, outside, seed)
+    else:
+        assert notes == []
+    out = compensate(robot, robot.predict(q, cols), q, columns=cols)
+    assert [n for n in out.notes if n.startswith("thermal drift")] == notes
+    assert held_at_edge(robot.effects, held) == []
+    # the service's predict (what POST /predict answers) carries the same note
+    from types import SimpleNamespace
+
+    from service.calibrations.service import predict
+
+    act = SPRAY.actuated
+    _, _, said = predict(SPRAY, SimpleNamespace(robot_state=robot.to_state()),
+                         (q[:, act] / SPRAY.joint_scale()[act]).tolist(), None, temperature=temp.tolist())
+    assert [n for n in said if n.startswith("thermal drift")] == notes
