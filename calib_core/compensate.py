@@ -35,7 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from . import kinematics as K
-from .effects.base import Context, unloaded
+from .effects.base import Context, rows_said, unloaded
 from .effects.cartesian_effects import held_at_edge
 from .effects.joint_effects import Backlash
 from .identify import CalibratedRobot
@@ -244,8 +244,8 @@ def flank_doubts(robot: CalibratedRobot, rows: Measurements) -> list[str]:
         rms = np.sqrt(e.flank_doubt(ctx)) * 0.5 * abs(float(v[0])) * np.linalg.norm(Jq[:, :, j], axis=1)
         doubt = np.flatnonzero(rms > FLANK_DOUBT_MM)
         if doubt.size:
-            name, at = model.joint_names[j], ", ".join(map(str, doubt[:10])) + (" ..." if doubt.size > 10 else "")
-            out.append(f"{name}'s gear play: at row{'s' * (doubt.size > 1)} {at} the load on {name} is near where it "
+            name = model.joint_names[j]
+            out.append(f"{name}'s gear play: at {rows_said(doubt)} the load on {name} is near where it "
                        f"changes sign, so the robot may sit elsewhere in the play than these commands assume: up to "
                        f"{rms.max():.3f} mm RMS at the tool (elsewhere under {FLANK_DOUBT_MM:g} mm); a pose with a "
                        f"clear load on {name}, or a measured tau_{name}, settles it")

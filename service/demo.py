@@ -428,8 +428,9 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
         seeds, targets_mm = camp.val.joints, camp.val.points
     val = camp.val
     joints, resid = np.empty_like(seeds), np.full(len(seeds), np.nan)
-    reached, reasons = np.zeros(len(seeds), bool), [None] * len(seeds)
-    for rows in _groups(val, by_payload=True):
+    reached, reasons, notes = np.zeros(len(seeds), bool), [None] * len(seeds), []
+    groups = _groups(val, by_payload=True)
+    for rows in groups:
         body = {"targets": (targets_mm[rows] / ls).tolist(), "seed_joints": _commands(model, seeds[rows]).tolist(),
                 **_pose_fields(model, val, rows)}
         if val.payload is not None:
@@ -444,6 +445,7 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
         reached[rows] = out["reachable"]
         for i, why in zip(rows, out["reason"]):
             reasons[i] = why
+        notes += [_told(rows, n) for n in out.get("notes") or []]
     n_ok = int(reached.sum())
     if camp.twin is None:
         say(f"{len(joints)} targets (the held-out measured points, their measured joints as seeds): the calibrated "
@@ -451,6 +453,7 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
             f"residual {np.nanmax(resid):.4f} mm). Their real accuracy needs a re-measurement of the robot at the "
             "compensated joints.", 3)
         _unreached(reached, reasons, resid)
+        _notes(notes)
         return
     twin = camp.twin
     as_programmed = twin.measure(seeds).points  # the robot at the program's joints
@@ -463,6 +466,7 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
         f"{REACH_MM:g} mm; largest model residual {np.nanmax(resid):.4f} mm); what is left is the robot's "
         "repeatability and the tracker noise.", 3)
     _unreached(reached, reasons, resid)
+    _notes(notes)
 
 
 def _why(reason: str | None) -> str:
@@ -473,6 +477,23 @@ def _why(reason: str | None) -> str:
         return "no reason given"
     m = re.fullmatch(r"not reachable: [\d.]+ mm left after \d+ iterations \((.*)\)", reason)
     return re.sub(r" \(about \d+ at this rate\)$", "", m.group(1) if m else reason)
+
+
+def _told(rows: np.ndarray, note: str) -> str:
+    """A note of the request for validation targets `rows`, its "rows 0, 2 ..." (the request's own) told as the
+    targets they are (numbered from 1): the demo sends one request per setup and payload."""
+    def targets(m: re.Match) -> str:
+        idx = [int(rows[int(k)]) + 1 for k in m.group(1).split(", ")]
+        return f"target{'s' * (len(idx) > 1 or bool(m.group(2)))} {', '.join(map(str, idx))}{m.group(2) or ''}"
+
+    return re.sub(r"\brows? (\d+(?:, \d+)*)( \.\.\.)?", targets, note)
+
+
+def _notes(notes: list[str]) -> None:
+    """What the compensation answers said beside the commands (a gear play's flank in doubt, a drift held at its
+    edge, a load not given), each once."""
+    for n in dict.fromkeys(notes):
+        say(f"The answer notes: {n}", 3)
 
 
 def _unreached(reached: np.ndarray, reasons: list, resid: np.ndarray) -> None:

@@ -103,6 +103,11 @@ def loads(chain: Chain, meas: Measurements, phi: np.ndarray | None = None, g: np
     return out
 
 
+def rows_said(rows: np.ndarray) -> str:
+    """How a note names a request's rows (0-based): "row 3", "rows 0, 2, 5", the first ten then "..."."""
+    return f"row{'s' * (len(rows) > 1)} {', '.join(map(str, rows[:10]))}{' ...' if len(rows) > 10 else ''}"
+
+
 def unloaded(model: RobotModel, effects, meas: Measurements) -> list[str]:
     """Sentences naming each identified cause that reads a joint's load (N*m or N) where the model has no masses
     and a row gives no tau_<joint>: there it acts as zero load (predict / compensate say so, never silently)."""
@@ -116,8 +121,7 @@ def unloaded(model: RobotModel, effects, meas: Measurements) -> list[str]:
             rows = np.arange(meas.n_poses) if meas.tau is None else np.flatnonzero(np.isnan(meas.tau[:, j]))
             if rows.size:
                 name = model.joint_names[j]
-                which = "every row" if rows.size == meas.n_poses else \
-                    f"row{'s' * (rows.size > 1)} {', '.join(map(str, rows[:10]))}{' ...' if rows.size > 10 else ''}"
+                which = "every row" if rows.size == meas.n_poses else rows_said(rows)
                 out.append(f"{e.label(model)} needs the load on {name}: the model has no masses and {which} gave no "
                            f"tau_{name}, so there it acts as zero load; give tau_{name} (N*m or N, as in the CSV)")
     return out

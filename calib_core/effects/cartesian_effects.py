@@ -9,7 +9,7 @@ import numpy as np
 from ..kinematics import _cross
 from ..model import ANGULAR, GEOMETRIC
 from ..statics import com_world, gravity_world, segment
-from .base import Basis, Context, Effect
+from .base import Basis, Context, Effect, rows_said
 from .joint_effects import gravity_across
 
 
@@ -335,7 +335,7 @@ def held_at_edge(effects, meas) -> list[str]:
         rows = np.flatnonzero((col < e.lo) | (col > e.hi))
         if not rows.size:
             continue
-        which = f"row{'s' * (rows.size > 1)} {', '.join(map(str, rows[:10]))}{' ...' if rows.size > 10 else ''}"
+        which = rows_said(rows)
         if e.source == "temperature":
             at, fitted = f"{col[rows].min():.1f} to {col[rows].max():.1f} deg C", f"{e.lo:.1f} to {e.hi:.1f} deg C"
         else:

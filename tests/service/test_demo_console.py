@@ -21,8 +21,8 @@ from calib_core.orientation import with_orientation
 from calib_core.twin import Twin
 from service import demo
 
-from .conftest import Server, base_env
-from .test_demo import calib, flat
+from .conftest import Server
+from .test_demo import flat
 
 BAR = re.compile(r"^\s*\[[#.]+\]\s+(\d+) %\s+(\d+\.\d) s\s", re.M)
 
@@ -213,3 +213,17 @@ def test_the_motoman_demo_compensation_gives_every_reason(motoman_demo):
             == missed
     else:
         assert "Not reached" not in story
+
+
+def test_an_answers_notes_are_told_with_the_targets_they_name(capsys):
+    """A compensation note names rows of its own request; the demo, which sends one request per setup and payload,
+    tells them as the validation targets they are (numbered from 1), each note once."""
+    rows = np.array([4, 9, 12, 30])
+    note = "J4's gear play: at rows 0, 2 ... the load on J4 is near where it changes sign"
+    told = demo._told(rows, note)
+    assert told == "J4's gear play: at targets 5, 13 ... the load on J4 is near where it changes sign"
+    assert demo._told(rows, "the load on row 3 gave") == "the load on target 31 gave"
+    assert demo._told(rows, "every row gave none") == "every row gave none"
+    demo._notes([told, told, "thermal drift: held"])
+    out = capsys.readouterr().out
+    assert out.count("The answer notes: J4's gear play") == 1 and "The answer notes: thermal drift" in out
