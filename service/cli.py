@@ -353,7 +353,8 @@ def main(argv: list[str] | None = None) -> int:
                       help="the effect the simulated robot hides (default: drawn at random)")
     demo.add_argument("--seed", type=int, help="seed of the simulated robot (default: random, printed), "
                       "or of the validation split with --data (default 0)")
-    demo.add_argument("--robot", metavar="MODEL.json", help="a contract model file (with --data: real measurements)")
+    demo.add_argument("--robot", metavar="MODEL.json", help="a contract model file: with --data, real measurements; "
+                      "alone, a digital twin of that robot")
     demo.add_argument("--data", metavar="MEASUREMENTS.csv", help="a contract measurement CSV of that robot; "
                       "30 %% of the poses are held out for validation")
     demo.add_argument("--instrument", choices=INSTRUMENTS,

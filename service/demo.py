@@ -6,7 +6,8 @@ tracker, one hidden physical cause drawn at random unless `--effect` names a wor
 (the first 50 planned by `POST /robots/{id}/plan`, D-optimal for the geometry, the others random) and 100
 validation poses; when the diagnosis lists look-alike causes a pose can split, 30 poses planned to split them are
 measured, added and diagnosed again. With `--robot MODEL.json --data MEASUREMENTS.csv`: real measurements, 30 %
-of the poses held out client-side for validation (a look-alike plan is shown, not measured).
+of the poses held out client-side for validation (a look-alike plan is shown, not measured). With `--robot
+MODEL.json` alone: a twin of that robot in the same world (a drawn cause its joints cannot show is passed over).
 
 The story is printed on stdout; the progress bar and the server's failures go to stderr.
 """
@@ -30,7 +31,7 @@ from calib_core.model import LENGTH_TO_MM, RobotModel
 from .cli import HIDDEN_KINDS
 from .config import Settings
 from .demo_campaign import (Campaign, _commands, _groups, _n_poses, _pose_fields, _unit, cause_name, counted,
-                            errors_mm, from_files, simulated, spray7_model)
+                            errors_mm, from_files, read_model, simulated, spray7_model)
 from .demo_client import Api, Server
 from .demo_console import DemoError, ProgressBar, fmm, head, say, table
 
@@ -54,9 +55,10 @@ def run(args) -> int:
     settings = Settings.from_env()
     t_start = time.monotonic()
     seed = args.seed if args.seed is not None else (0 if args.data else secrets.randbelow(1_000_000))
-    if bool(args.robot) != bool(args.data):
-        print("calib demo: --robot and --data go together (a model JSON and its measurement CSV)", file=sys.stderr)
+    if args.data and not args.robot:
+        print("calib demo: --data needs --robot (the model JSON the measurement CSV is of)", file=sys.stderr)
         return 2
+    own = None  # a user's robot without data: a twin of it
     try:
         if args.data:
             camp = from_files(Path(args.robot), Path(args.data), seed, getattr(args, "instrument", None),
@@ -67,12 +69,13 @@ def run(args) -> int:
             if args.effect not in (None, "none", *KINDS):
                 raise DemoError(f"unknown effect {args.effect!r}: use one of {', '.join(KINDS)} or none")
             camp = None
+            own = read_model(Path(args.robot)) if args.robot else None
     except DemoError as exc:
         print(f"calib demo: {exc}", file=sys.stderr)
         return 2
     log = Path(tempfile.mkdtemp(prefix="calib-demo-")) / "server.log"
     try:
-        return _story(args, settings, camp, seed, log, t_start)
+        return _story(args, settings, camp, seed, log, t_start, own)
     except DemoError as exc:
         print(f"\ncalib demo failed: {exc}", file=sys.stderr)
         return 1
@@ -92,8 +95,14 @@ class Chapters:
         head(f"{self.n}. {title}")
 
 
-def _story(args, settings: Settings, camp: Campaign | None, seed: int, log: Path, t_start: float) -> int:
-    if camp is None:
+def _story(args, settings: Settings, camp: Campaign | None, seed: int, log: Path, t_start: float,
+           own: tuple[dict, RobotModel] | None = None) -> int:
+    if own is not None:
+        model = own[1]
+        say(f"calib demo: a digital twin of your robot {model.name} ({model.n_joints} joints, "
+            f"{str(own[0].get('convention', 'mdh')).upper()}, {model.length_unit}/{model.angle_unit}), from "
+            f"{args.robot}, in the independent simulated world.")
+    elif camp is None:
         say("calib demo: the 7-DoF spray-painting robot of Wang et al. (Machines 2023, 11, 20): a 4 m rail, waist, "
             "two parallel pitch joints, forearm roll, a telescopic forearm (1700-2300 mm) and a wrist.")
     else:
@@ -108,7 +117,7 @@ def _story(args, settings: Settings, camp: Campaign | None, seed: int, log: Path
     api = Api(server.url, settings.api_token, settings.job_timeout_s + JOB_QUEUE_S)
     try:
         say(f"calib serve is running on {server.url} (database {_show_db(db)}; its log: {log}).", 3)
-        return _chapters(args, api, server, camp, seed, t_start, chapter)
+        return _chapters(args, api, server, camp, seed, t_start, chapter, own)
     finally:
         api.close()
         if api.refused:  # the story never asks what its own answers rule out: a refusal is a bug of the demo's
@@ -136,14 +145,14 @@ def _show_db(url: str) -> str:
 
 
 def _chapters(args, api: Api, server: Server, camp: Campaign | None, seed: int, t_start: float,
-              chapter: Chapters) -> int:
+              chapter: Chapters, own: tuple[dict, RobotModel] | None = None) -> int:
     if camp is None:  # simulated: plan the poses first, then measure the twin there
-        doc, model = spray7_model()
+        doc, model = own or spray7_model()
         chapter("Which poses to measure: POST /robots/{id}/plan")
         robot = api.call("POST", "/robots", (201,), json=doc).json()
         say(f"POST /robots -> robot {robot['id']}.", 3)
         planned = _plan_geometry(api, robot["id"], model, seed)
-        camp = simulated(args.effect, seed, planned)
+        camp = simulated(args.effect, seed, planned, own)
     else:
         model = camp.model
         robot = api.call("POST", "/robots", (201,), json=camp.model_doc).json()

@@ -113,12 +113,15 @@ def spray7_model() -> tuple[dict, RobotModel]:
     return doc, parse_model(doc)
 
 
-def simulated(effect: str | None, seed: int, planned: np.ndarray | None = None) -> Campaign:
+def simulated(effect: str | None, seed: int, planned: np.ndarray | None = None,
+              robot: tuple[dict, RobotModel] | None = None) -> Campaign:
     """The twin's campaign: N_CAL calibration poses (the `planned` rows (k, n) first, internal units, then random
-    ones), the hidden cause sized on them, and N_VAL random validation poses; all drawn from `seed`."""
+    ones), the hidden cause sized on them, and N_VAL random validation poses; all drawn from `seed`. The robot is the
+    spray robot, or `robot` (a user's model JSON and its parsed model): a drawn cause its joints cannot show is
+    passed over for another one."""
     from calib_world import KINDS, World, hide
 
-    doc, model = spray7_model()
+    doc, model = robot or spray7_model()
     rng = np.random.default_rng((seed, 1))
     kind = effect or str(rng.choice(KINDS))
     if kind != "none" and kind not in KINDS:
@@ -128,32 +131,42 @@ def simulated(effect: str | None, seed: int, planned: np.ndarray | None = None) 
     planned = np.zeros((0, model.n_joints)) if planned is None else np.atleast_2d(np.asarray(planned, float))
     size = float(np.exp(rng.uniform(*np.log(SIZE_RANGE)))) if kind != "none" else None
     q = np.vstack([planned, world.sample_joints(N_CAL - len(planned), rng)])
-    if kind != "none":
-        hidden = hide(world, kind, size, rng, q=q)
-        thermal = hidden["temperature"]
-    else:
-        thermal = False
+    others = [k for k in rng.permutation(KINDS) if k != kind] if effect is None else []
+    while kind != "none" and hidden is None:
+        try:
+            hidden = hide(world, kind, size, rng, q=q)
+        except ValueError as exc:  # the robot has no joint that shows it (a rail's straightness on an arm)
+            if not others:
+                raise DemoError(f"--effect {kind} cannot be hidden on {model.name}: {exc}") from None
+            kind = str(others.pop(0))
+    thermal = bool(hidden and hidden["temperature"])
     cal = world.measure(q, temperature=thermal)
     val = world.campaign(world.sample_joints(N_VAL, rng), temperature=thermal)
     rep = 1000 * world.repeatability_mm
+    errors = "the paper's errors" if robot is None else "the errors of a robot as built"
     return Campaign(doc, model, write_measurements(cal, model), cal, val.meas,
                     source=f"simulated: a digital twin of the robot in an independent world (its true geometry "
-                           f"off by the paper's errors, masses not the model's, tool point off by millimetres, laser "
+                           f"off by {errors}, masses not the model's, tool point off by millimetres, laser "
                            f"tracker noise 15 um + 6 um/m, repeatability {rep:.0f} um), seed {seed}",
                     validation=f"{N_VAL} more poses measured on the same twin, never uploaded",
                     twin=world, hidden=hidden, val_truth=val.truth.points, n_total=N_CAL + N_VAL,
                     n_planned=len(planned))
 
 
-def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None, limits: str = "reject") -> Campaign:
+def read_model(robot: Path) -> tuple[dict, RobotModel]:
+    """A user's model JSON and the parsed model; DemoError saying what is wrong with the file."""
     try:
         doc = json.loads(robot.read_text())
     except (OSError, ValueError) as exc:
         raise DemoError(f"cannot read the model {robot}: {exc}") from None
     try:
-        model = parse_model(doc)
+        return doc, parse_model(doc)
     except ModelError as exc:
         raise DemoError(f"the model {robot} is not valid: {exc}") from None
+
+
+def from_files(robot: Path, data: Path, seed: int, instrument: str | None = None, limits: str = "reject") -> Campaign:
+    doc, model = read_model(robot)
     try:
         text = data.read_text(encoding="utf-8-sig")
         meas = parse_measurements(text, model, instrument=instrument, limits=limits)

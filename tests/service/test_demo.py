@@ -335,8 +335,10 @@ def test_two_forms_of_one_lookalike_are_one_pair(capsys):
 
 def test_demo_arguments_are_checked(tmp_path):
     env = base_env(f"sqlite:///{tmp_path / 'calib.db'}")
-    r = calib("demo", "--robot", "model.json", cwd=tmp_path, env=env, timeout=60)
-    assert r.returncode == 2 and "--robot and --data go together" in r.stderr
+    r = calib("demo", "--data", "m.csv", cwd=tmp_path, env=env, timeout=60)
+    assert r.returncode == 2 and "--data needs --robot" in r.stderr
+    r = calib("demo", "--robot", "model.json", cwd=tmp_path, env=env, timeout=60)  # alone: a twin of it, if it reads
+    assert r.returncode == 2 and "cannot read the model model.json" in r.stderr
     r = calib("demo", "--effect", "gremlins", cwd=tmp_path, env=env, timeout=60)
     assert r.returncode == 2 and "invalid choice" in r.stderr
     (tmp_path / "model.json").write_text("{}")
@@ -344,6 +346,27 @@ def test_demo_arguments_are_checked(tmp_path):
     r = calib("demo", "--robot", "model.json", "--data", "m.csv", cwd=tmp_path, env=env, timeout=60)
     assert r.returncode == 2 and "is not valid" in r.stderr
     assert not (tmp_path / "calib.db").exists()  # nothing started for bad input
+
+
+def test_a_twin_of_the_users_own_robot(seed):
+    """`calib demo --robot MODEL.json` without data: the twin is that robot (a drawn one of ours here), a drawn cause
+    its joints cannot show (a rail's straightness on an arm) is passed over for one they can, and the spray robot's
+    draws are what they were (the same seed, the same cause)."""
+    from calib_core.model import parse_model
+    from calib_core.robots import arm6
+    from calib_world import KINDS
+
+    not_on_arm6 = {"rail_straightness", "telescopic_bending"}
+    first = lambda s: str(np.random.default_rng((s, 1)).choice(KINDS))  # noqa: E731 - the kind drawn first
+    s = next(s for s in range(seed % 10_000, seed % 10_000 + 1000) if first(s) in not_on_arm6)
+    doc = arm6()
+    camp = demo.simulated(None, s, robot=(doc, parse_model(doc)))
+    assert camp.model.name == "arm6" and camp.model_doc is doc and camp.cal.joints.shape == (150, 6)
+    assert camp.hidden["kind"] in KINDS and camp.hidden["kind"] not in not_on_arm6, (s, camp.hidden["kind"])
+    assert camp.hidden["cause"] in camp.twin.causes and "a robot as built" in camp.source
+    with pytest.raises(demo.DemoError, match="cannot be hidden on arm6"):
+        demo.simulated("rail_straightness", s, robot=(doc, parse_model(doc)))
+    assert demo.simulated(None, s).hidden["kind"] == first(s)  # the spray robot: no pass-over needed
 
 
 def test_demo_help_lists_the_options():
