@@ -438,8 +438,7 @@ def _compensation(api: Api, camp: Campaign, cal_id: str, before: dict) -> None:
     val = camp.val
     joints, resid = np.empty_like(seeds), np.full(len(seeds), np.nan)
     reached, reasons, notes = np.zeros(len(seeds), bool), [None] * len(seeds), []
-    groups = _groups(val, by_payload=True)
-    for rows in groups:
+    for rows in _groups(val, by_payload=True):
         body = {"targets": (targets_mm[rows] / ls).tolist(), "seed_joints": _commands(model, seeds[rows]).tolist(),
                 **_pose_fields(model, val, rows)}
         if val.payload is not None:
