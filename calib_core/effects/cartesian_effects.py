@@ -272,7 +272,16 @@ class ThermalDrift(Effect):
     ref: float = 0.0  # the calibration's mean temperature (deg C) or time (s since the epoch)
     lo: float = -np.inf
     hi: float = np.inf
-    """The session's range of the driver: a drift is never extrapolated beyond what it was fitted on."""
+    """The session's range of the driver. A drift over time is never extrapolated beyond it; a drift with temperature
+    (linear in it, as steel grows) by up to EXTRAPOLATE_SHARE of the range at either end, and held there."""
+    EXTRAPOLATE_SHARE = 1.0
+
+    def bounds(self) -> tuple[float, float]:
+        """The driver's values the drift follows (beyond them it is held at the nearer one): deg C or s."""
+        if self.source != "temperature":
+            return self.lo, self.hi
+        more = self.EXTRAPOLATE_SHARE * (self.hi - self.lo)
+        return self.lo - more, self.hi + more
 
     @classmethod
     def for_data(cls, meas) -> "ThermalDrift":
@@ -291,7 +300,7 @@ class ThermalDrift(Effect):
         col = meas.temperature if self.source == "temperature" else meas.timestamp
         if col is None:
             return np.zeros(meas.n_poses), "none"
-        col = np.clip(col, self.lo, self.hi)
+        col = np.clip(col, *self.bounds())
         if self.source == "temperature":
             return col - self.ref, "temperature above calibration mean (deg C)"
         return (col - self.ref) / 3600.0, "time from calibration mean (h)"
@@ -321,9 +330,10 @@ class ThermalDrift(Effect):
 
 
 def held_at_edge(effects, meas) -> list[str]:
-    """Sentences naming the rows whose temperature (or time) lies outside what a thermal drift was fitted on: the
-    drift is held at its value at the nearer end there, never extrapolated (ThermalDrift.lo/hi), and predict and
-    compensate say so (a cell warmer than on the calibration's day got the edge's correction in silence)."""
+    """Sentences naming the rows whose temperature (or time) lies outside what a thermal drift was fitted on: with
+    temperature the drift is extrapolated (ThermalDrift.bounds) and then held, over time it is held at the nearer
+    end; predict and compensate say which (a cell warmer than on the calibration's day got the edge's correction in
+    silence)."""
     out = []
     for e in effects:
         if not isinstance(e, ThermalDrift):
@@ -332,18 +342,28 @@ def held_at_edge(effects, meas) -> list[str]:
         if col is None:
             continue
         col = np.asarray(col, float)
-        rows = np.flatnonzero((col < e.lo) | (col > e.hi))
-        if not rows.size:
-            continue
-        which = rows_said(rows)
+        lo, hi = e.bounds()
+        held = (col < lo) | (col > hi)
+        beyond = ((col < e.lo) | (col > e.hi)) & ~held
         if e.source == "temperature":
-            at, fitted = f"{col[rows].min():.1f} to {col[rows].max():.1f} deg C", f"{e.lo:.1f} to {e.hi:.1f} deg C"
+            deg = lambda a, b: f"{a:.1f} to {b:.1f} deg C"  # noqa: E731
+            fitted = deg(e.lo, e.hi)
+            if beyond.any():
+                rows = np.flatnonzero(beyond)
+                out.append(f"thermal drift: {rows_said(rows)} {'are' if rows.size > 1 else 'is'} at "
+                           f"{deg(col[rows].min(), col[rows].max())}, outside the {fitted} it was fitted on: the drift "
+                           f"per degree is extrapolated there (steel grows linearly with temperature; a calibration "
+                           f"measured over these temperatures confirms it)")
+            span = f"{deg(lo, hi)} (the {fitted} it was fitted on, and as much again on either side)"
         else:
             utc = lambda t: datetime.fromtimestamp(t, timezone.utc).strftime("%Y-%m-%d %H:%M UTC")  # noqa: E731
-            at, fitted = f"{utc(col[rows].min())} to {utc(col[rows].max())}", f"{utc(e.lo)} to {utc(e.hi)}"
-        out.append(f"thermal drift: {which} {'are' if rows.size > 1 else 'is'} at {at}, outside the {fitted} it was "
-                   f"fitted on: there it is held at its value at the nearer end, not extrapolated (a calibration "
-                   f"measured over these {'temperatures' if e.source == 'temperature' else 'times'} extends it)")
+            deg = lambda a, b: f"{utc(a)} to {utc(b)}"  # noqa: E731
+            span = f"{deg(lo, hi)} it was fitted on"
+        if held.any():
+            rows = np.flatnonzero(held)
+            out.append(f"thermal drift: {rows_said(rows)} {'are' if rows.size > 1 else 'is'} at "
+                       f"{deg(col[rows].min(), col[rows].max())}, outside {span}: there it is held at its value at "
+                       f"the nearer end, not extrapolated")
     return out
 
 
