@@ -33,8 +33,11 @@ class Context:
         """The context of these poses at geometry x, one object for the same model, poses, x and R0 among the last
         CONTEXTS asked (with the bases made in it): a diagnosis screens, fits and refits the same candidates at one
         reference geometry many times (Agile Justin: 3056 bases asked for, 1363 distinct)."""
+        # the poses and the columns effects read by value too: a Measurements' arrays can be written in place (a
+        # temperature changed between two predictions on one object gave the first prediction again)
         key = (np.asarray(x, float).tobytes(), None if R0 is None else np.asarray(R0, float).tobytes(),
-               meas.joints.tobytes())  # the poses by value too: a Measurements' arrays can be written in place
+               meas.joints.tobytes(), *(None if (a := getattr(meas, c)) is None else np.asarray(a).tobytes()
+                                        for c in _READ_COLUMNS))
         with _CONTEXTS_LOCK:  # a service without compute processes predicts in several route threads
             for i, (m, q, k, ctx) in enumerate(_CONTEXTS):
                 if m is model and q is meas and k == key:
@@ -76,6 +79,8 @@ class Context:
         return self.model.drive_motion()
 
 
+_READ_COLUMNS = ("temperature", "timestamp", "sequence", "payload", "tau", "target", "setup")
+"""The per-pose columns besides the joints that effects or the chain read (Context.at keys on their values)."""
 CONTEXTS = 4
 """Contexts kept by Context.at: a round's reference geometry, the one its revisits screen at, and two spare."""
 _CONTEXTS: list[tuple] = []

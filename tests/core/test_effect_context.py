@@ -39,11 +39,32 @@ def test_one_context_per_model_poses_geometry_and_frame(setting):
     again = Context.at(model, x, written)
     written.joints[0, 0] += 0.1  # the same object, its poses written in place
     assert Context.at(model, x, written) is not again
+    again = Context.at(model, x, written)
+    written.payload[1] += 5.0  # ... or a column an effect reads (a load, a temperature)
+    assert Context.at(model, x, written) is not again
     for k in range(CONTEXTS):  # the oldest goes once CONTEXTS others were asked since
         bent = x.copy()
         bent[1] += 1e-6 * (k + 1)
         Context.at(model, bent, meas)
     assert Context.at(model, x, meas) is not ctx
+
+
+def test_a_prediction_follows_a_column_written_in_place():
+    """A calibrated drift, and the temperature of the same Measurements object written in place between two
+    predictions: the second follows the new temperature (it gave the first prediction again: the context and its
+    bases were kept by the object and the joints alone)."""
+    from calib_core.calibrated import CalibratedRobot
+    from calib_core.effects.cartesian_effects import ThermalDrift
+    from calib_core.io import Measurements
+
+    model = parse_model(spray7())
+    drift = ThermalDrift((), source="temperature", ref=20.0, lo=18.0, hi=24.0)
+    robot = CalibratedRobot(model, K.nominal_vector(model), np.eye(3), (drift,), (np.array([0.1, 0.0, 0.0, 0.0]),))
+    q = World(model, 5).sample_joints(10, np.random.default_rng(5))
+    cols = Measurements(joints=q, points=np.zeros((10, 3)), temperature=np.full(10, 20.0))
+    first = robot.predict(q, cols)
+    cols.temperature[:] = 22.0
+    assert np.allclose(robot.predict(q, cols) - first, [0.2, 0.0, 0.0])
 
 
 def test_a_basis_is_made_once_read_only_and_equals_a_fresh_one(setting):
