@@ -13,8 +13,7 @@ import re
 import pytest
 
 from service.report import decorate, plots as report_plots
-from service.report.figures import (COMPLIANCE_UNIT, accuracy, counts, joint_size, mm, pct, shown, sig,
-                                    std_str)
+from service.report.figures import COMPLIANCE_UNIT, counts, joint_size, mm, pct, shown, sig, std_str
 from service.report.html import render
 
 from .test_report import calibrations, run_job, text_of  # noqa: F401  (the module's fixture, its helpers)
