@@ -131,14 +131,16 @@ def simulated(effect: str | None, seed: int, planned: np.ndarray | None = None,
     planned = np.zeros((0, model.n_joints)) if planned is None else np.atleast_2d(np.asarray(planned, float))
     size = float(np.exp(rng.uniform(*np.log(SIZE_RANGE)))) if kind != "none" else None
     q = np.vstack([planned, world.sample_joints(N_CAL - len(planned), rng)])
-    others = [k for k in rng.permutation(KINDS) if k != kind] if effect is None else []
+    others = None  # drawn only when a kind is passed over, from a stream of its own: the draws above stay the same
     while kind != "none" and hidden is None:
         try:
             hidden = hide(world, kind, size, rng, q=q)
         except ValueError as exc:  # the robot has no joint that shows it (a rail's straightness on an arm)
+            if others is None and effect is None:
+                others = [str(k) for k in np.random.default_rng((seed, 2)).permutation(KINDS) if k != kind]
             if not others:
                 raise DemoError(f"--effect {kind} cannot be hidden on {model.name}: {exc}") from None
-            kind = str(others.pop(0))
+            kind = others.pop(0)
     thermal = bool(hidden and hidden["temperature"])
     cal = world.measure(q, temperature=thermal)
     val = world.campaign(world.sample_joints(N_VAL, rng), temperature=thermal)

@@ -366,7 +366,15 @@ def test_a_twin_of_the_users_own_robot(seed):
     assert camp.hidden["cause"] in camp.twin.causes and "a robot as built" in camp.source
     with pytest.raises(demo.DemoError, match="cannot be hidden on arm6"):
         demo.simulated("rail_straightness", s, robot=(doc, parse_model(doc)))
-    assert demo.simulated(None, s).hidden["kind"] == first(s)  # the spray robot: no pass-over needed
+    # the spray robot: no pass-over, and the draws of the demo before it (kind, size, poses, then the cause)
+    from calib_world import World, hide
+    from service.demo_campaign import N_CAL, SIZE_RANGE
+
+    rng, spray = np.random.default_rng((s, 1)), demo.spray7_model()[1]
+    kind, world = str(rng.choice(KINDS)), World(spray, s)
+    size = float(np.exp(rng.uniform(*np.log(SIZE_RANGE))))
+    then = hide(world, kind, size, rng, q=world.sample_joints(N_CAL, rng))
+    assert demo.simulated(None, s).hidden["parameters"] == then["parameters"], s
 
 
 def test_demo_help_lists_the_options():
