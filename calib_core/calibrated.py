@@ -10,6 +10,8 @@ import numpy as np
 from . import kinematics as K
 from .effects import (Backlash, Context, CyclicJointError, Effect, JointCompliance, JointScale, LoadCompliance, apply,
                       effect_from_state, effect_state)
+from .effects.base import unloaded
+from .effects.cartesian_effects import held_at_edge
 from .io import Measurements
 from .model import MDH, RobotModel
 
@@ -92,6 +94,11 @@ class CalibratedRobot:
             return K.forward(self.model, self.x, joints, self.R0, labels)
         dq, dp = self.effect_offsets(joints, columns)
         return K.forward(self.model, self.x, joints + dq, self.R0, labels) + dp
+
+    def notes(self, columns: Measurements) -> list[str]:
+        """What a prediction at these rows cannot take into account, in sentences (predict and compensate answer
+        them): a load-driven cause without a load, a thermal drift beyond the temperatures or times it was fitted on."""
+        return unloaded(self.model, self.effects, columns) + held_at_edge(self.effects, columns)
 
     def to_state(self) -> dict:
         """JSON-able state; `from_state(model, state)` restores it exactly."""

@@ -35,12 +35,12 @@ from typing import Sequence
 import numpy as np
 
 from . import kinematics as K
-from .effects.base import Context, rows_said, unloaded
-from .effects.cartesian_effects import held_at_edge
+from .effects.base import rows_said
 from .effects.joint_effects import Backlash
 from .identify import CalibratedRobot
 from .io import Measurements
 from .model import RobotModel
+from .uncertainty import switch_doubts
 
 RAD_PER_MM = 1e-3
 """Joint-space metric: 1 rad of a revolute joint weighs like 1000 mm of a prismatic joint."""
@@ -220,7 +220,7 @@ def compensate(
             where += f"; with {', '.join(names[j] for j in lock)} locked"
         reason[i] = f"not reachable: {residual[i]:.3f} mm left after {iterations[i]} iterations ({where})"
     rows = _rows(columns, np.arange(N), model.expand_joints(q))
-    notes = unloaded(model, robot.effects, rows) + held_at_edge(robot.effects, rows) + flank_doubts(robot, rows)
+    notes = robot.notes(rows) + flank_doubts(robot, rows)
     return Compensation(joints=q, residual_mm=residual, reachable=reachable, reason=reason, iterations=iterations,
                         notes=notes)
 
@@ -231,20 +231,14 @@ def flank_doubts(robot: CalibratedRobot, rows: Measurements) -> list[str]:
     sit elsewhere in the play than the commands assume, by up to the play's swing at the tool. A hard play's cube
     point at 2 % of its joint's load range was commanded on the model's soft flank and landed 0.38 mm off where the
     other four landed within 0.07 mm (RESULTS 4.2): the answer said nothing."""
-    plays = [(e, v) for e, v in zip(robot.effects, robot.effect_values)
-             if isinstance(e, Backlash) and (e.switch_width > 0 or e.switch_draws)]
-    if not plays or not rows.n_poses:
-        return []
-    model = robot.model
-    ctx = Context.at(model, robot.basis_x, rows, robot.R0)
-    Jq = robot.chain(rows.joints, rows)[0].joint_jacobian()  # (N, 3, n) mm per rad or mm
     out = []
-    for e, v in plays:
-        j = e.joints[0]
-        rms = np.sqrt(e.flank_doubt(ctx)) * 0.5 * abs(float(v[0])) * np.linalg.norm(Jq[:, :, j], axis=1)
+    for e, P, d in switch_doubts(robot, rows):
+        if not isinstance(e, Backlash):
+            continue
+        rms = np.sqrt(P) * np.linalg.norm(d, axis=1)
         doubt = np.flatnonzero(rms > FLANK_DOUBT_MM)
         if doubt.size:
-            name = model.joint_names[j]
+            name = robot.model.joint_names[e.joints[0]]
             out.append(f"{name}'s gear play: at {rows_said(doubt)} the load on {name} is near where it "
                        f"changes sign, so the robot may sit elsewhere in the play than these commands assume: up to "
                        f"{rms.max():.3f} mm RMS at the tool (elsewhere under {FLANK_DOUBT_MM:g} mm); a pose with a "

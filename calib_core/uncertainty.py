@@ -29,7 +29,7 @@ import numpy as np
 
 from . import kinematics as K
 from .effects import Backlash, Context, SessionStep
-from .calibrated import _columns
+from .calibrated import CalibratedRobot, _columns
 from .identify import Calibration, effect_bases
 from .io import Measurements
 
@@ -70,31 +70,38 @@ def prediction_cov(cal: Calibration, joints, columns: Measurements | None = None
 
 def _misplaced(cal: Calibration, joints, columns: Measurements | None) -> np.ndarray:
     """(N, 3, 3) mm^2: what a switch the model places costs a pose that may be on its other side, the mean square
-    error (not the variance about the prediction, which is what a z-score divides by). A step in time lies
-    somewhere between the two measured poses it fell between: with the chance P of the wrong side
-    (SessionStep.misplaced), the step's whole displacement d, P d d^T. A gear play's flank is in doubt where the
-    load is near zero: the flank factor's mean square error (Backlash.flank_doubt) times the half play's
-    displacement h, m h h^T."""
+    error (not the variance about the prediction, which is what a z-score divides by): sum of P d d^T over
+    switch_doubts."""
     q = np.atleast_2d(np.asarray(joints, float))
     out = np.zeros((len(q), 3, 3))
-    switches = [(e, v) for e, v in zip(cal.effects, cal.effect_values)
+    for _, P, d in switch_doubts(cal.robot, _columns(q, columns)):
+        out += P[:, None, None] * d[:, :, None] * d[:, None, :]
+    return out
+
+
+def switch_doubts(robot: CalibratedRobot, meas: Measurements) -> list[tuple]:
+    """Per switch the model places, (the effect, P (N,), d (N, 3) mm): a pose on the switch's other side is off by d,
+    with mean square weight P. A step in time lies somewhere between the two measured poses it fell between: P the
+    chance of the wrong side (SessionStep.misplaced), d the step's whole displacement. A gear play's flank is in doubt
+    where the load is near zero: P the flank factor's mean square error (Backlash.flank_doubt), d the half play's
+    displacement."""
+    switches = [(e, v) for e, v in zip(robot.effects, robot.effect_values)
                 if (isinstance(e, SessionStep) and e.gap) or
                 (isinstance(e, Backlash) and (e.switch_width > 0 or e.switch_draws))]
-    if not switches:
-        return out
-    meas = _columns(q, columns)
-    Jq = cal.robot.chain(q, meas)[0].joint_jacobian()
-    ctx = Context.at(cal.model, cal.basis_x, meas, cal.R0)
+    if not switches or not meas.n_poses:
+        return []
+    Jq = robot.chain(meas.joints, meas)[0].joint_jacobian()
+    ctx = Context.at(robot.model, robot.basis_x, meas, robot.R0)
+    out = []
     for e, v in switches:
         if isinstance(e, SessionStep):
-            P = e.misplaced(ctx)
-            every = np.full(len(q), np.inf)
+            every = np.full(meas.n_poses, np.inf)
             other = dataclasses.replace(meas, timestamp=every, sequence=every)  # every pose after the step
-            Phi_q, Phi_p = effect_bases(cal.model, other, [e], cal.basis_x, cal.R0)
+            Phi_q, Phi_p = effect_bases(robot.model, other, [e], robot.basis_x, robot.R0)
             d = np.einsum("nij,njk,k->ni", Jq, Phi_q, v) + np.einsum("nik,k->ni", Phi_p, v)
+            out.append((e, e.misplaced(ctx), d))
         else:
-            P, d = e.flank_doubt(ctx), 0.5 * v[0] * Jq[:, :, e.joints[0]]
-        out += P[:, None, None] * d[:, :, None] * d[:, None, :]
+            out.append((e, e.flank_doubt(ctx), 0.5 * v[0] * Jq[:, :, e.joints[0]]))
     return out
 
 

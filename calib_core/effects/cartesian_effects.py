@@ -336,34 +336,28 @@ def held_at_edge(effects, meas) -> list[str]:
     silence)."""
     out = []
     for e in effects:
-        if not isinstance(e, ThermalDrift):
-            continue
-        col = meas.temperature if e.source == "temperature" else meas.timestamp
+        col = None if not isinstance(e, ThermalDrift) else (
+            meas.temperature if e.source == "temperature" else meas.timestamp)
         if col is None:
             continue
-        col = np.asarray(col, float)
-        lo, hi = e.bounds()
+        col, (lo, hi) = np.asarray(col, float), e.bounds()
         held = (col < lo) | (col > hi)
-        beyond = ((col < e.lo) | (col > e.hi)) & ~held
         if e.source == "temperature":
-            deg = lambda a, b: f"{a:.1f} to {b:.1f} deg C"  # noqa: E731
-            fitted = deg(e.lo, e.hi)
-            if beyond.any():
-                rows = np.flatnonzero(beyond)
-                out.append(f"thermal drift: {rows_said(rows)} {'are' if rows.size > 1 else 'is'} at "
-                           f"{deg(col[rows].min(), col[rows].max())}, outside the {fitted} it was fitted on: the drift "
-                           f"per degree is extrapolated there (steel grows linearly with temperature; a calibration "
-                           f"measured over these temperatures confirms it)")
-            span = f"{deg(lo, hi)} (the {fitted} it was fitted on, and as much again on either side)"
+            at = lambda a, b: f"{a:.1f} to {b:.1f} deg C"  # noqa: E731
+            span = f"{at(lo, hi)} (the {at(e.lo, e.hi)} it was fitted on, and as much again on either side)"
         else:
             utc = lambda t: datetime.fromtimestamp(t, timezone.utc).strftime("%Y-%m-%d %H:%M UTC")  # noqa: E731
-            deg = lambda a, b: f"{utc(a)} to {utc(b)}"  # noqa: E731
-            span = f"{deg(lo, hi)} it was fitted on"
-        if held.any():
-            rows = np.flatnonzero(held)
-            out.append(f"thermal drift: {rows_said(rows)} {'are' if rows.size > 1 else 'is'} at "
-                       f"{deg(col[rows].min(), col[rows].max())}, outside {span}: there it is held at its value at "
-                       f"the nearer end, not extrapolated")
+            at = lambda a, b: f"{utc(a)} to {utc(b)}"  # noqa: E731
+            span = f"{at(lo, hi)} it was fitted on"
+        for rows, then in ((np.flatnonzero(((col < e.lo) | (col > e.hi)) & ~held),  # empty over time: lo, hi bound it
+                            f"outside the {at(e.lo, e.hi)} it was fitted on: the drift per degree is extrapolated there "
+                            f"(steel grows linearly with temperature; a calibration measured over these temperatures "
+                            f"confirms it)"),
+                           (np.flatnonzero(held), f"outside {span}: there it is held at its value at the nearer end, "
+                                                  f"not extrapolated")):
+            if rows.size:
+                out.append(f"thermal drift: {rows_said(rows)} {'are' if rows.size > 1 else 'is'} at "
+                           f"{at(col[rows].min(), col[rows].max())}, {then}")
     return out
 
 

@@ -9,8 +9,6 @@ from sqlalchemy.orm import Session, object_session
 
 from calib_core.compensate import compensate as solve_compensation
 from calib_core.compensate import nominal_to_calibrated
-from calib_core.effects.base import unloaded
-from calib_core.effects.cartesian_effects import held_at_edge
 from calib_core.calibrated import CalibratedRobot, StaleState
 from calib_core.io import MAX_SEQUENCE, MAX_TAU, Measurements
 from calib_core.model import (ANGLE_TO_RAD, JOINT_MARGIN_FRACTION, LENGTH_TO_MM, MAX_PAYLOAD_KG, MAX_POINT_MM,
@@ -325,7 +323,7 @@ def predict(model: RobotModel, c, joints: list[list[float]], payload, temperatur
                            timestamp=stamps, target=tix, setup=six, setup_names=robot.setup_names, tau=torques,
                            sequence=order)
     p_mm = robot.predict(q, columns)
-    notes = unloaded(model, robot.effects, columns) + held_at_edge(robot.effects, columns)
+    notes = robot.notes(columns)
     return (p_mm / LENGTH_TO_MM[model.length_unit]).tolist(), model.length_unit, notes
 
 
