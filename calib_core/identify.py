@@ -28,6 +28,8 @@ from .io import DISTINCT_DECIMALS, Measurements
 from .model import ANGLE_TO_RAD, LENGTH_TO_MM, RobotModel
 from .solve import Solution, least_squares, lm_steps, solve_together
 
+FTOL = 1e-10
+"""LM's convergence test of a fit: stop when a step would lower the weighted cost by less than this share of it."""
 WARM_DAMPING = 1e-9
 """Initial LM damping of a fit that begins at a nearby solution (a cross-validation fold at the full-data one):
 Gauss-Newton steps at once, so weakly determined directions converge too and not just pass the test damped."""
@@ -348,7 +350,7 @@ class ThroughJoints:
 
 def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None,
          prior_scale: float = 1.0, *, evals: ChainEvaluations | None = None, covariance: bool = True,
-         damping: float = 1e-4, ftol: float = 1e-10, pose_noise: PoseNoise | None = None,
+         damping: float = 1e-4, ftol: float = FTOL, pose_noise: PoseNoise | None = None,
          max_iter: int = 100) -> Solution:
     """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian.
 
@@ -490,6 +492,8 @@ def identify(
     pose_noise: PoseNoise | None = None,
     start: Calibration | None = None,
     model_error_mm: float | None = None,
+    ftol: float = FTOL,
+    first_ftol: float | None = None,
 ) -> Calibration:
     """Identify the independent geometric parameters (restricted to names/prefixes in `free` if given)
     jointly with the parameters of `effects`.
@@ -509,6 +513,11 @@ def identify(
     `model_error_mm` given: the fit weighted by the noise plus that model error (mm per axis), one solve instead
     of two (the first, weighted by the noise alone, estimates the model error; on a large model error it converges
     slowly: Agile Justin's mass steps, 100 iterations each); for fits that keep one weighting (the mass steps).
+    `ftol`: LM's convergence test (relative drop of the weighted cost a step must promise), looser for a fit that is
+    one step on a path whose end is fitted in full. `first_ftol` (default `ftol`): the test of the fit weighted by
+    the noise alone, whose one use is the model error it leaves; where the model error is many times the noise, that
+    fit is a large-residual problem on which Gauss-Newton converges linearly, so a search that makes hundreds of fits
+    can stop it early (diagnosis.fitter) and the answer is then solved to `ftol` from there.
 
     Raises ValueError when the pose set cannot calibrate: fewer than three distinct joint configurations
     or fewer equations than parameters. A pose set that identifies less than the model's structure allows
@@ -534,12 +543,14 @@ def identify(
                          "parameters; measure more poses")
     return _calibrate(model, meas, sigma, x0, R0, ident, idx, effects=effects, loss=loss, regularize=regularize,
                       folds=folds, x_ref=x_ref, prior_scale=prior_scale, refold=refold, pose_noise=pose_noise,
-                      model_error_mm=model_error_mm, start=start_at(start, model, x0, idx, effects))[0]
+                      model_error_mm=model_error_mm, start=start_at(start, model, x0, idx, effects), ftol=ftol,
+                      first_ftol=ftol if first_ftol is None else first_ftol)[0]
 
 
 def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None, regularize=True, folds=5,
                x_ref=None, prior_scale=1.0, start=None, evals: ChainEvaluations | None = None, refold=None,
-               pose_noise=None, model_error_mm: float | None = None) -> tuple[Calibration, Solution]:
+               pose_noise=None, model_error_mm: float | None = None, ftol: float = FTOL,
+               first_ftol: float = FTOL) -> tuple[Calibration, Solution]:
     """identify() once the pose set is checked, pre-aligned and analysed: the fit weighted by the noise, again
     with the model error added to the weights, and the cross-validation. Also returns the first fit (noise
     weights alone). `start` (first fit) and memoised `evals` (geometric fits) let callers that fit one pose
@@ -556,14 +567,17 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
     if model_error_mm is not None:  # the weighting given: one solve
         s_model, sigma0_measurement = float(model_error_mm), None
         sigma = np.sqrt(sigma**2 + s_model**2)
-        first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, **fit)
+        first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, ftol=ftol,
+                           **fit)
     else:
-        first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, **fit)
+        first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start,
+                           ftol=first_ftol, **fit)
         sigma0_measurement = float(np.sqrt(sol.s2))
         s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
-        if s_model > 0.0:  # weight by measurement noise plus what the model leaves, then solve again
-            sigma = np.sqrt(sigma**2 + s_model**2)
-            sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x, **fit)
+        if s_model > 0.0 or first_ftol > ftol:  # weight by measurement noise plus what the model leaves (or the
+            sigma = np.sqrt(sigma**2 + s_model**2)  # noise alone, the first fit stopped early), then solve again
+            sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x, ftol=ftol,
+                       **fit)
     x = x0.copy()
     x[idx] = sol.x[: len(idx)]
     cal = Calibration(model=model, x=x, R0=R0, free=idx, solution=sol, identifiability=ident,

@@ -76,6 +76,9 @@ MASS_TOL = 0.01
 """The steps stop when no body's mass moves by more than this share of the mean body mass..."""
 TILT_TOL_RAD = 1e-4
 """...and gravity's direction by less than this."""
+STEP_FTOL = 1e-6
+"""LM's test for the fits along the path (each a step, its end fitted in full): the misfits it compares are then
+within ~1e-3 chi-square units of their optimum, far below MASS_DROP; ~half the iterations of the full test."""
 MASS_DROP = float(2.0 * special.gammaincinv(0.5, 0.99))  # chi2.ppf(0.99, 1), scipy.stats' arithmetic
 """...or when two steps in a row each lower the weighted misfit (chi-square units) by less than one parameter could at
 1 %: on Agile Justin the steps crawl along a valley where the tilt trades with the first moments, 2-4 units a step
@@ -257,7 +260,7 @@ def _mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, tilt_fir
         step = mass_step([(effects[i], values[i]) for i in idx], model, g)
         if tilt_first and k == 0:
             step = dataclasses.replace(step, bodies=(), prior=step.prior[-2:])
-        t = fit(effects + [step], t.x, folds=0, model_error_mm=weighting)
+        t = fit(effects + [step], t.x, folds=0, model_error_mm=weighting, ftol=STEP_FTOL)
         delta, tilt = t.effect_values[-1][:-2].reshape(-1, 4), t.effect_values[-1][-2:]
         phi[list(step.bodies)] += delta
         phi[:, 0] = np.maximum(phi[:, 0], 0.0)
@@ -265,7 +268,7 @@ def _mass_steps(chosen, idx, effects, t, phi, g, phi_model, model, fit, tilt_fir
         masses = tuple(tuple(float(v) for v in row) for row in phi)
         effects = [dataclasses.replace(e, masses=masses, gravity=tuple(float(v) for v in g)) if i in idx else e
                    for i, e in enumerate(chosen)]
-        refit = fit(effects, t.x, folds=0, model_error_mm=weighting)
+        refit = fit(effects, t.x, folds=0, model_error_mm=weighting, ftol=STEP_FTOL)
         misfit = weighted_misfit(refit)
         small = best is not None and best[0] - misfit < MASS_DROP
         if best is None or misfit < best[0]:
