@@ -5,19 +5,21 @@ on the 70 %, its extended model is judged on the 30 % it never saw) and the inde
 15 % off, one drawn cause at 5x the noise) at 150 and 2000 poses. Each case runs in its own process, one BLAS
 thread, with PYTHONPATH set to the revision's tree (a `git worktree` made once under /tmp), so both revisions see
 the same machine at the same time; scipy's modules are imported before the clock on both sides, as the service's fork
-server has them (--cache reuses a committed revision's earlier results). Per case: wall time and its ratio, the
-findings (kind and joints) and the held-out RMS on the 30 % (or on 100 fresh world poses), with their relative
+server has them (--cache reuses a committed revision's earlier results). Per case: wall time and its ratio, the CPU
+time of the diagnosis's processes (its own and the children it forked, which it waits for: steadier than the wall
+time on a shared machine, and it counts the work done in parallel, wasted or not), the findings (kind and joints) and the held-out RMS on the 30 % (or on 100 fresh world poses), with their relative
 difference.
 
 Run: .venv/bin/python -m benchmarks.bench_diagnosis_speed [--base REV]
      [--cases motoman motoman_order iiwa justin hilti w150 w2000]
-     [--jobs 2] [--workers 2]
+     [--jobs 2] [--workers 2] [--repeat 3]
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -77,12 +79,13 @@ else:
     k = int(round(0.7 * len(ids)))
     cal = np.isin(groups, ids[np.sort(perm[:k])])
     train, test = meas.subset(cal), meas.subset(~cal)
-t = time.perf_counter()
+t, cpu = time.perf_counter(), os.times()
 d = diagnose(model, train, **({"workers": workers} if workers > 1 else {}))
-wall = time.perf_counter() - t
+wall, done = time.perf_counter() - t, os.times()
+cpu = sum(getattr(done, k) - getattr(cpu, k) for k in ("user", "system", "children_user", "children_system"))
 found = [f"{f['kind']}{'(' + f['follows'] + ')' if f['kind'] == 'correction' else ''} "
          f"{','.join(f.get('joints') or [])}".strip() for f in d.findings]
-print(json.dumps({"wall_s": wall, "findings": found, "heldout_rms_mm": evaluate(d.calibration, test)["rms_mm"],
+print(json.dumps({"wall_s": wall, "cpu_s": cpu, "findings": found, "heldout_rms_mm": evaluate(d.calibration, test)["rms_mm"],
                   "search_complete": not d.untested}))
 '''
 
@@ -127,6 +130,24 @@ def _run(case: str, tree: Path, root: str, workers: int = 1) -> dict:
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
+def _median(results: list[dict]) -> dict:
+    """One side's runs of a case as one result: the median wall and CPU time (with the wall's range when there are
+    several), the first run's findings and held-out figure (a diagnosis is deterministic: several runs that disagree
+    are an error)."""
+    ok = [r for r in results if "error" not in r]
+    if len(ok) < len(results):
+        return next(r for r in results if "error" in r)
+    first = dict(ok[0])
+    if any((r["findings"], r["heldout_rms_mm"]) != (first["findings"], first["heldout_rms_mm"]) for r in ok[1:]):
+        return {"error": "runs of one revision gave different answers"}
+    if len(ok) > 1:
+        walls = [r["wall_s"] for r in ok]
+        first.update(wall_s=statistics.median(walls), wall_min_s=min(walls), wall_max_s=max(walls))
+        if all("cpu_s" in r for r in ok):
+            first["cpu_s"] = statistics.median(r["cpu_s"] for r in ok)
+    return first
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_diagnosis_speed", description=__doc__.splitlines()[0])
     p.add_argument("--base", default=BASE, help=f"the revision to compare with (default {BASE})")
@@ -135,32 +156,40 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="cases run at once (processes)")
     p.add_argument("--workers", type=int, default=1, help="this code's diagnosis processes (diagnose(workers=...), "
                    "as an auto job runs it: CALIB_DIAGNOSIS_WORKERS); the base always runs in one")
+    p.add_argument("--repeat", type=int, default=1, help="runs of each side, interleaved (base, new, base, ...): the "
+                   "table gives each side's median time and the ratio of the medians (this machine's speed varies "
+                   "10-25 %% from run to run, the one-process base's as much as its CPU time)")
     p.add_argument("--cache", action="store_true", help=f"reuse committed revisions' results from {CACHE}")
     p.add_argument("--root", default=os.environ.get("CALIB_SHARED_DATASETS", str(ROOT.parent / "shared" / "datasets")))
     args = p.parse_args(argv)
     base, new = tree_of(args.base), tree_of(args.new)
     t0 = time.perf_counter()
     sides = (("base", base, 1), ("new", new, args.workers))
-    tasks = [(c, which, tree, w) for c in args.cases for which, tree, w in sides]
+    tasks = [(c, which, tree, w) for c in args.cases for _ in range(max(args.repeat, 1)) for which, tree, w in sides]
     on = lambda case, which: "motoman" if (case, which) == ("motoman_order", "base") else case  # noqa: E731
     with ThreadPoolExecutor(args.jobs) as pool:  # each task is its own process; threads only wait
         done = list(pool.map(lambda t: (t[0], t[1], run(on(t[0], t[1]), t[2], args.root, args.cache, t[3])), tasks))
-    out: dict = {}
+    runs: dict = {}
     for case, which, res in done:
-        out.setdefault(case, {})[which] = res
+        runs.setdefault(case, {}).setdefault(which, []).append(res)
+    out = {case: {which: _median(rs) for which, rs in sides_.items()} for case, sides_ in runs.items()}
+    times = f", the median of {args.repeat} interleaved runs each" if args.repeat > 1 else ""
     print(f"## The diagnosis's run time: {args.new} ({args.workers} process{'es' if args.workers > 1 else ''}) against "
-          f"{args.base} (one) ({args.jobs} case(s) at once, one BLAS thread each)\n")
-    print("| case | base (s) | new (s) | speed-up | findings base | findings new | held-out RMS base -> new (mm) | "
-          "complete base / new |")
-    print("|---|---|---|---|---|---|---|---|")
+          f"{args.base} (one) ({args.jobs} case(s) at once, one BLAS thread each{times})\n")
+    print("| case | base (s) | new (s) | speed-up | CPU base / new (s) | findings base | findings new | "
+          "held-out RMS base -> new (mm) | complete base / new |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for case in args.cases:
         b, n = out[case]["base"], out[case]["new"]
         if "error" in b or "error" in n:
-            print(f"| {case} | {b.get('error', '')} | {n.get('error', '')} | | | | | |")
+            print(f"| {case} | {b.get('error', '')} | {n.get('error', '')} | | | | | | |")
             continue
         diff = 100.0 * (n["heldout_rms_mm"] / b["heldout_rms_mm"] - 1.0)
+        spread = "".join(f" {which} {x['wall_min_s']:.1f}-{x['wall_max_s']:.1f}" for which, x in (("base", b), ("new", n))
+                         if "wall_min_s" in x)
         same = "" if b["findings"] == n["findings"] else " **differ**"
-        print(f"| {case} | {b['wall_s']:.1f} | {n['wall_s']:.1f} | {b['wall_s'] / n['wall_s']:.1f}x | "
+        cpu = (f"{b['cpu_s']:.1f} / {n['cpu_s']:.1f}" if "cpu_s" in b and "cpu_s" in n else "")
+        print(f"| {case} | {b['wall_s']:.1f} | {n['wall_s']:.1f} | {b['wall_s'] / n['wall_s']:.1f}x{spread} | {cpu} | "
               f"{'; '.join(b['findings']) or 'none'} | {'; '.join(n['findings']) or 'none'}{same} | "
               f"{b['heldout_rms_mm']:.3f} -> {n['heldout_rms_mm']:.3f} ({diff:+.1f} %) | "
               f"{b['search_complete']} / {n['search_complete']} |")
