@@ -6,9 +6,9 @@ on the 70 %, its extended model is judged on the 30 % it never saw) and the inde
 thread, with PYTHONPATH set to the revision's tree (a `git worktree` made once under /tmp), so both revisions see
 the same machine at the same time; scipy's modules are imported before the clock on both sides, as the service's fork
 server has them (--cache reuses a committed revision's earlier results). Per case: wall time and its ratio, the CPU
-time of the diagnosis's processes (its own and the children it forked, which it waits for: steadier than the wall
-time on a shared machine, and it counts the work done in parallel, wasted or not), the findings (kind and joints) and the held-out RMS on the 30 % (or on 100 fresh world poses), with their relative
-difference.
+time of the diagnosis's processes (its own and the children it forked and waited for: the work done in parallel,
+wasted or not), the findings (kind and joints) and the held-out RMS on the 30 % (or on 100 fresh world poses), with
+their relative difference; with --repeat, each side's median over interleaved runs.
 
 Run: .venv/bin/python -m benchmarks.bench_diagnosis_speed [--base REV]
      [--cases motoman motoman_order iiwa justin hilti w150 w2000]
@@ -85,8 +85,8 @@ wall, done = time.perf_counter() - t, os.times()
 cpu = sum(getattr(done, k) - getattr(cpu, k) for k in ("user", "system", "children_user", "children_system"))
 found = [f"{f['kind']}{'(' + f['follows'] + ')' if f['kind'] == 'correction' else ''} "
          f"{','.join(f.get('joints') or [])}".strip() for f in d.findings]
-print(json.dumps({"wall_s": wall, "cpu_s": cpu, "findings": found, "heldout_rms_mm": evaluate(d.calibration, test)["rms_mm"],
-                  "search_complete": not d.untested}))
+print(json.dumps({"wall_s": wall, "cpu_s": cpu, "findings": found,
+                  "heldout_rms_mm": evaluate(d.calibration, test)["rms_mm"], "search_complete": not d.untested}))
 '''
 
 
@@ -185,8 +185,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {case} | {b.get('error', '')} | {n.get('error', '')} | | | | | | |")
             continue
         diff = 100.0 * (n["heldout_rms_mm"] / b["heldout_rms_mm"] - 1.0)
-        spread = "".join(f" {which} {x['wall_min_s']:.1f}-{x['wall_max_s']:.1f}" for which, x in (("base", b), ("new", n))
-                         if "wall_min_s" in x)
+        spread = "".join(f" {which} {x['wall_min_s']:.1f}-{x['wall_max_s']:.1f}"
+                         for which, x in (("base", b), ("new", n)) if "wall_min_s" in x)
         same = "" if b["findings"] == n["findings"] else " **differ**"
         cpu = (f"{b['cpu_s']:.1f} / {n['cpu_s']:.1f}" if "cpu_s" in b and "cpu_s" in n else "")
         print(f"| {case} | {b['wall_s']:.1f} | {n['wall_s']:.1f} | {b['wall_s'] / n['wall_s']:.1f}x{spread} | {cpu} | "
