@@ -514,7 +514,7 @@ def identify(
     of two (the first, weighted by the noise alone, estimates the model error; on a large model error it converges
     slowly: Agile Justin's mass steps, 100 iterations each); for fits that keep one weighting (the mass steps).
     `ftol`: LM's convergence test (relative drop of the weighted cost a step must promise), looser for a fit that is
-    one step on a path whose end is fitted in full. `first_ftol` (default `ftol`): the test of the fit weighted by
+    one step on a path whose end is fitted in full. `first_ftol` (used where looser than `ftol`): the test of the fit weighted by
     the noise alone, whose one use is the model error it leaves; where the model error is many times the noise, that
     fit is a large-residual problem on which Gauss-Newton converges linearly, so a search that makes hundreds of fits
     can stop it early (diagnosis.fitter) and the answer is then solved to `ftol` from there.
@@ -544,13 +544,13 @@ def identify(
     return _calibrate(model, meas, sigma, x0, R0, ident, idx, effects=effects, loss=loss, regularize=regularize,
                       folds=folds, x_ref=x_ref, prior_scale=prior_scale, refold=refold, pose_noise=pose_noise,
                       model_error_mm=model_error_mm, start=start_at(start, model, x0, idx, effects), ftol=ftol,
-                      first_ftol=ftol if first_ftol is None else first_ftol)[0]
+                      first_ftol=first_ftol)[0]
 
 
 def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None, regularize=True, folds=5,
                x_ref=None, prior_scale=1.0, start=None, evals: ChainEvaluations | None = None, refold=None,
                pose_noise=None, model_error_mm: float | None = None, ftol: float = FTOL,
-               first_ftol: float = FTOL) -> tuple[Calibration, Solution]:
+               first_ftol: float | None = None) -> tuple[Calibration, Solution]:
     """identify() once the pose set is checked, pre-aligned and analysed: the fit weighted by the noise, again
     with the model error added to the weights, and the cross-validation. Also returns the first fit (noise
     weights alone). `start` (first fit) and memoised `evals` (geometric fits) let callers that fit one pose
@@ -570,12 +570,13 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
         first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start, ftol=ftol,
                            **fit)
     else:
+        early = first_ftol is not None and first_ftol > ftol  # the first fit stopped before the answer's test
         first = sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=start,
-                           ftol=first_ftol, **fit)
+                           ftol=first_ftol if early else ftol, **fit)
         sigma0_measurement = float(np.sqrt(sol.s2))
         s_model = model_error_sigma(sol.residual, sigma, len(sol.x), sol.weights)
-        if s_model > 0.0 or first_ftol > ftol:  # weight by measurement noise plus what the model leaves (or the
-            sigma = np.sqrt(sigma**2 + s_model**2)  # noise alone, the first fit stopped early), then solve again
+        if s_model > 0.0 or early:  # weighted by the noise plus what the model leaves (or the noise alone, from
+            sigma = np.sqrt(sigma**2 + s_model**2)  # where the first fit stopped), solved again to the full test
             sol = _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases, eprior, start=sol.x, ftol=ftol,
                        **fit)
     x = x0.copy()

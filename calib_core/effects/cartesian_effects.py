@@ -336,8 +336,9 @@ def held_at_edge(effects, meas) -> list[str]:
     silence)."""
     out = []
     for e in effects:
-        col = None if not isinstance(e, ThermalDrift) else (
-            meas.temperature if e.source == "temperature" else meas.timestamp)
+        if not isinstance(e, ThermalDrift):
+            continue
+        col = meas.temperature if e.source == "temperature" else meas.timestamp
         if col is None:
             continue
         col, (lo, hi) = np.asarray(col, float), e.bounds()
