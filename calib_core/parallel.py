@@ -1,5 +1,6 @@
 """Independent parts of one computation in forked processes: a diagnosis's play searches per joint, its rival
-fits, its two mass-data paths. Each part is a function of what the parent holds when it forks (nothing is sent but
+fits, its two mass-data paths (pmap); and, begun ahead while it goes on (Ahead), its robust first fit, a sparser
+search and the smooth correction of what is left. Each part is a function of what the parent holds when it forks (nothing is sent but
 the answer, pickled back through a pipe), so the answers are those of running the parts in order, which is what
 one worker does (and what a platform without fork does), to rounding: a part done in another process allocates its
 arrays at other addresses, and numpy's SIMD sums follow memory alignment (a diagnosis's x can move by 1e-12 mm).
@@ -99,7 +100,7 @@ class Ahead:
     answering, fn() is computed here, as it would be in order. The `shared` objects come back as themselves (pmap)."""
 
     def __init__(self, fn: Callable[[], R], shared: Sequence[object] = ()):
-        self.fn, self.shared, self.pid, self.read = fn, shared, None, None
+        self.fn, self.shared, self.pid, self.read, self.parent = fn, shared, None, None, os.getpid()
         if hasattr(os, "fork"):
             self.pid, self.read = _fork(lambda: [(0, True, fn())], os.getpid(), shared)
 
@@ -123,8 +124,9 @@ class Ahead:
         return value
 
     def cancel(self) -> None:
-        """Stops the child when its answer is no longer wanted (an exception on the way)."""
-        if self.pid is not None:
+        """Stops the child when its answer is no longer wanted (an exception on the way); only in the process that
+        began it (a process forked since holds a copy of this object, not the child)."""
+        if self.pid is not None and os.getpid() == self.parent:
             try:
                 os.kill(self.pid, signal.SIGKILL)
                 os.waitpid(self.pid, 0)

@@ -43,13 +43,15 @@ class _Fitter:
         checks a calibration's model by identity) and the poses."""
         return (self.model, self.meas)
 
-    def apart(self, fn: Callable[[T], R]) -> Callable[[T], R]:
-        """fn for parallel.pmap: every call starts where the fit before the map ended, and leaves it there (fits in
-        worker processes cannot move it; in order they would, so one worker and several give the same answers)."""
+    def apart(self, fn: Callable[[T], R], start: Calibration | None = None) -> Callable[[T], R]:
+        """fn for parallel.pmap: every call starts where the fit before the map ended (or from `start`), and leaves
+        the fit where it was (fits in worker processes cannot move it; in order they would, so one worker and several
+        give the same answers)."""
         before = list(self.last)
+        begin = [start] if start is not None else before
 
         def run(item: T) -> R:
-            self.last[:] = before
+            self.last[:] = begin
             try:
                 return fn(item)
             finally:

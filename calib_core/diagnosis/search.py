@@ -94,6 +94,8 @@ class _Search:
     # with _sparser's search, whose first round asks again on the same model
     ahead: bool = False  # _sparser's search begun in a child process while this one goes on as if not taken (settle)
     pending: list = field(default_factory=list)  # that search under way (one at most): (Ahead, fit.workers before)
+    speculated: list = field(default_factory=list)  # the smooth correction begun ahead (one at most): (model,
+    # Ahead, fit.workers before)
 
     def late(self, what: str) -> bool:
         """True once the deadline has passed; the first call after it records `what` was left untested. Also where the
@@ -244,7 +246,8 @@ class _Search:
         n_spread = len(c.effect.parameter_names(self.model))
         sub = dataclasses.replace(
             self, pool=[e for e in self.pool if len(e.joints) <= 1 or isinstance(e, SessionStep)],
-            chosen=list(self.chosen), findings=list(self.findings), rejected=[], ahead=False, pending=[])
+            chosen=list(self.chosen), findings=list(self.findings), rejected=[], ahead=False, pending=[],
+            speculated=[])
         before = list(self.fit.last)  # a search not taken is a comparison the search does not go on from
         for _ in range(MAX_SPARSE):
             if not sub._round():
@@ -303,13 +306,56 @@ class _Search:
     def _poll(self) -> None:
         """Settles a _sparser search begun ahead as soon as it has ended: not taken, the search goes on in two
         processes again; taken, what was done meanwhile is dropped at once (_Settled)."""
+        if self.speculated and not self._speculated_for(self.current, self.chosen, self.x_ref):
+            self.cancel_speculation()  # the model it was begun for has changed
         if self.pending and self.pending[0][0].ready() and self.settle():
             raise _Settled
 
     def cancel(self) -> None:
-        """Stops a _sparser search begun ahead (an exception on the way)."""
+        """Stops a _sparser search or a smooth correction begun ahead (an exception on the way)."""
         while self.pending:
             self.pending.pop()[0].cancel()
+        self.cancel_speculation()
+
+    def speculate(self) -> None:
+        """Begins the smooth correction of the current model (_smooth) in a child process, where the search has
+        no other one running, and goes on in one process until it is used or dropped (three would share two cores):
+        what follows (the revisits, the narrowed forms) rarely changes the model, and then _left finds it ready
+        beside the traced structure instead of fitting it after it (the Motoman: 0.55 s, its search's longest serial
+        part). Begun again only for a model it was not begun for."""
+        self._poll()
+        if self.speculated and self._speculated_for(self.current, self.chosen, self.x_ref):
+            return
+        self.cancel_speculation()
+        if self.fit.workers < 2 or self.pending or _excess(self.current, self.floor) >= self.alpha or (
+                self.deadline is not None and time.monotonic() >= self.deadline):
+            return  # two processes busy, no structure left for a correction (_left), or no time
+        fit, current, chosen, x_ref, meas = self.fit, self.current, list(self.chosen), self.x_ref, self.meas
+        smooth = fit.apart(lambda _: _smooth(fit, current, meas, chosen, x_ref), current)
+        self.speculated.append(((current, chosen, x_ref), Ahead(lambda: smooth(None), fit.shared), fit.workers))
+        self.fit = dataclasses.replace(fit, workers=1)
+
+    def cancel_speculation(self) -> None:
+        """Stops the smooth correction begun ahead, if any."""
+        if self.speculated:
+            self._took_speculation().cancel()
+
+    def _took_speculation(self) -> Ahead:
+        """The smooth correction begun ahead, off the search (its processes back)."""
+        _, ahead, workers = self.speculated.pop()
+        self.fit = dataclasses.replace(self.fit, workers=workers)
+        return ahead
+
+    def _speculated_for(self, current: Calibration, chosen: list[Effect], x_ref: np.ndarray) -> bool:
+        (c, ch, x), _, _ = self.speculated[0]
+        return c is current and x is x_ref and len(ch) == len(chosen) and all(a is b for a, b in zip(ch, chosen))
+
+    def speculation(self, current: Calibration, chosen: list[Effect], x_ref: np.ndarray) -> Ahead | None:
+        """The smooth correction begun ahead for this very model (speculate), or None."""
+        if self.speculated and self._speculated_for(current, chosen, x_ref):
+            return self._took_speculation()
+        self.cancel_speculation()
+        return None
 
     def revisit(self, report: Callable[[float, str], None]) -> None:
         """Test each finding again with the others in the model (_revisit), until nothing changes (3 passes)."""
@@ -488,14 +534,12 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     sigma = meas.noise_sigma_mm()
     report(0.05, "identifying the geometric model")
     notes: list[str] = []
-    first = None
+    first = selection = None
     if loss == "auto":
-        first = identify(model, meas, loss="huber", folds=0)
-        runs = _flagged_in_runs(first, meas)
-        loss = "huber" if len(first.solution.outliers) and not runs and not _play_not_outliers(first, meas) else None
+        first, runs, loss, selection = _robust_or_not(model, meas, folds, workers)
         if runs:
             notes.append(runs)
-    selection = select_geometry(model, meas, loss=loss, folds=folds, workers=workers)
+    selection = selection or select_geometry(model, meas, loss=loss, folds=folds, workers=workers)
     geo = selection.calibration
     fit = _Fitter(model, meas, loss, folds, selection.free, selection.prior_scale, workers)
     if not selection.helps:
@@ -517,7 +561,7 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     try:
         while True:  # twice at most: a sparser search begun ahead and taken, the search on from where it left it
             try:
-                _searched(search, notes, report)
+                _searched(search, notes, report, unexplained)
                 left = _left(search, notes, floor, note, basis, unexplained, report)
                 if not search.settle():
                     break
@@ -546,6 +590,32 @@ def diagnose(model: RobotModel, meas: Measurements, *, alpha: float = ALPHA, rep
     d.explanation = explain(d, model)
     report(1.0, "diagnosis done")
     return d
+
+
+def _robust_or_not(model: RobotModel, meas: Measurements, folds: int, workers: int) -> tuple:
+    """loss 'auto': the first robust (Huber) fit, the note on the poses it flags in runs (or None), the loss the
+    search fits with (Huber when it flags outliers that are neither runs nor a play), and, with several processes,
+    the geometry already selected for that loss: the robust fit is made in a child while the selection on plain
+    least squares, the loss of every real set we have, goes on here (dropped when Huber it is).
+    (first, runs, loss, selection or None)."""
+    def judged() -> tuple:
+        first = identify(model, meas, loss="huber", folds=0)
+        runs = _flagged_in_runs(first, meas)
+        loss = "huber" if len(first.solution.outliers) and not runs and not _play_not_outliers(first, meas) else None
+        return first, runs, loss
+
+    if workers < 2:
+        return *judged(), None
+    robust = Ahead(judged, (model, meas))
+    try:
+        try:
+            plain = select_geometry(model, meas, loss=None, folds=folds, workers=workers)
+        except ValueError:
+            plain = None  # raised again in order: after the robust fit's own errors
+        first, runs, loss = robust.result()
+    finally:
+        robust.cancel()
+    return first, runs, loss, plain if loss is None else None
 
 
 def _left(search: _Search, notes: list[str], floor: float, note: str, basis: str, unexplained: bool,
@@ -604,12 +674,15 @@ def _sparser_better(n_new: int, n_spread: int, held_out_new_mm: float, held_out_
     return 0 < n_new < n_spread and held_out_new_mm < held_out_spread_mm
 
 
-def _searched(search: _Search, notes: list[str], report: Callable[[float, str], None]) -> None:
+def _searched(search: _Search, notes: list[str], report: Callable[[float, str], None], corrected: bool) -> None:
     """The search's stages: rounds of candidates (the first ones may begin _sparser's search ahead: _Search.settle),
     each finding revisited, the mass data under the compliances found and a search on from them, the spread and the
-    narrowed forms."""
+    narrowed forms. `corrected`: what is left gets a correction (_left), whose smooth field is begun ahead of the
+    stages that may leave the model as it is (_Search.speculate)."""
     search.run(report)
     search.ahead = False
+    if corrected and not any(_mass_driven(e) for e in search.chosen):  # else the mass data's step refits it
+        search.speculate()
     search.revisit(report)
     if search.chosen and search.identify_masses(notes, report) and search.run(report):
         # the guessed mass data hid causes a load closer to the real one shows (an elastic humanoid: the joints'
@@ -619,6 +692,8 @@ def _searched(search: _Search, notes: list[str], report: Callable[[float, str], 
     if search.masses_identified():  # what the causes did on the guessed masses, on the identified ones
         search.revisit(report)
         search.spread(notes, report)
+    if corrected:
+        search.speculate()
     while search.narrowed(report):  # each pass drops joints: the narrowed form's own shares decide the next
         pass
 
@@ -627,28 +702,38 @@ def _follows_and_corrections(search: _Search, current: Calibration, chosen: list
                              load_pool: dict[int, LoadCompliance], noise_like: bool) -> tuple[list[dict], list]:
     """What the residual left by `chosen` follows (_follows) and, where it follows something or is not noise-like,
     the corrections tried for it: the smooth field and the joint-driven one ((calibration, correction) or None
-    each; none past the deadline). Each correction starts from the same fit (fit.apart). With several processes the
-    smooth field, which needs nothing _follows finds, is fitted beside it (and dropped when it was not needed)."""
-    fit, meas, sigma, folds = search.fit, search.meas, search.sigma, search.fit.folds
-    apart = fit.apart(lambda make: make())
+    each; none past the deadline). Each correction starts from `current` (fit.apart). With several processes the
+    smooth field, which needs nothing _follows finds, is fitted beside it (begun ahead where the model has not
+    changed since: _Search.speculate; dropped when it was not needed)."""
+    ready = search.speculation(current, chosen, x_ref)  # first: it gives the search its processes back
+    fit, meas, sigma = search.fit, search.meas, search.sigma
+    apart = fit.apart(lambda make: make(), current)
     untested = "a smooth correction of what is left"  # what the deadline leaves, said once
-
-    def smooth():
-        scales = (field_scale(current, meas, x_ref, folds),) if folds > 1 else LENGTH_SCALES
-        return fit_residual_field(fit, current, chosen, x_ref, scales)
 
     def traced():
         follows = _follows(current, meas, sigma, x_ref, search.alpha, load_pool, fit, chosen)
         due = (follows or not noise_like) and not search.late(untested)
         return follows, due, apart(lambda: _drive_field(fit, chosen, x_ref, follows)) if due else None
 
-    if fit.workers > 1 and not search.late(untested):
-        field, (follows, due, drive) = pmap(apart, [smooth, traced], fit.workers, fit.shared)
+    if ready is not None:
+        follows, due, drive = traced()
+        field = ready.result() if due else ready.cancel()
+    elif fit.workers > 1 and not search.late(untested):
+        field, (follows, due, drive) = pmap(apart, [lambda: _smooth(fit, current, meas, chosen, x_ref), traced],
+                                            fit.workers, fit.shared)
         if not due and (follows or not noise_like):  # a worker's deadline, said here
             search.late(untested)
-        return follows, [field, drive] if due else []
-    follows, due, drive = traced()
-    return follows, [apart(smooth), drive] if due else []
+    else:
+        follows, due, drive = traced()
+        field = apart(lambda: _smooth(fit, current, meas, chosen, x_ref)) if due else None
+    return follows, [field, drive] if due else []
+
+
+def _smooth(fit: _Fitter, current: Calibration, meas: Measurements, chosen: list[Effect], x_ref: np.ndarray):
+    """The smooth field's correction of what `chosen` leave ((calibration, field) or None): its length scale by
+    k-fold at the current model's linearisation (field_scale), fitted in full at that scale."""
+    scales = (field_scale(current, meas, x_ref, fit.folds),) if fit.folds > 1 else LENGTH_SCALES
+    return fit_residual_field(fit, current, chosen, x_ref, scales)
 
 
 def _chained_and_doubts(findings: list[dict], geo: Calibration, named: Calibration, current: Calibration, fit: _Fitter,
