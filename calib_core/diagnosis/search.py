@@ -95,7 +95,8 @@ class _Search:
     ahead: bool = False  # _sparser's search begun in a child process while this one goes on as if not taken (settle)
     pending: list = field(default_factory=list)  # that search under way (one at most): (Ahead, fit.workers before)
     speculated: list = field(default_factory=list)  # the smooth correction begun ahead (one at most): (model,
-    # Ahead, fit.workers before)
+    # Ahead, fit.workers before), the model (current, chosen, x_ref) it was begun for
+    wanted: tuple | None = None  # the model a smooth correction was asked for while a _sparser search ran beside
 
     def late(self, what: str) -> bool:
         """True once the deadline has passed; the first call after it records `what` was left untested. Also where the
@@ -247,7 +248,7 @@ class _Search:
         sub = dataclasses.replace(
             self, pool=[e for e in self.pool if len(e.joints) <= 1 or isinstance(e, SessionStep)],
             chosen=list(self.chosen), findings=list(self.findings), rejected=[], ahead=False, pending=[],
-            speculated=[])
+            speculated=[], wanted=None)
         before = list(self.fit.last)  # a search not taken is a comparison the search does not go on from
         for _ in range(MAX_SPARSE):
             if not sub._round():
@@ -305,11 +306,14 @@ class _Search:
 
     def _poll(self) -> None:
         """Settles a _sparser search begun ahead as soon as it has ended: not taken, the search goes on in two
-        processes again; taken, what was done meanwhile is dropped at once (_Settled)."""
-        if self.speculated and not self._speculated_for(self.current, self.chosen, self.x_ref):
-            self.cancel_speculation()  # the model it was begun for has changed
+        processes again (and begins the smooth correction asked for meanwhile: speculate); taken, what was done
+        meanwhile is dropped at once (_Settled). Drops a smooth correction begun for a model the search has left."""
+        if self.speculated and not self._is_current(self.speculated[0][0]):
+            self.cancel_speculation()
         if self.pending and self.pending[0][0].ready() and self.settle():
             raise _Settled
+        if self.wanted is not None and not self.pending:
+            self._begin_speculation()
 
     def cancel(self) -> None:
         """Stops a _sparser search or a smooth correction begun ahead (an exception on the way)."""
@@ -318,18 +322,29 @@ class _Search:
         self.cancel_speculation()
 
     def speculate(self) -> None:
-        """Begins the smooth correction of the current model (_smooth) in a child process, where the search has
-        no other one running, and goes on in one process until it is used or dropped (three would share two cores):
-        what follows (the revisits, the narrowed forms) rarely changes the model, and then _left finds it ready
-        beside the traced structure instead of fitting it after it (the Motoman: 0.55 s, its search's longest serial
-        part). Begun again only for a model it was not begun for."""
+        """Begins the smooth correction of the current model (_smooth) in a child process, and goes on in one
+        process until it is used or dropped (three would share two cores): what follows (the revisits, the narrowed
+        forms) rarely changes the model, and then _left finds it ready beside the traced structure instead of fitting
+        it after it (the Motoman: 0.55 s, its search's longest serial part). With a _sparser search still running
+        beside, it is begun once that has settled, if the model is still this one."""
+        self.wanted = (self.current, list(self.chosen), self.x_ref)
         self._poll()
-        if self.speculated and self._speculated_for(self.current, self.chosen, self.x_ref):
+        self._begin_speculation()
+
+    def _begin_speculation(self) -> None:
+        if self.wanted is None or not self._is_current(self.wanted):
+            self.wanted = None
             return
+        if self.speculated and self._is_current(self.speculated[0][0]):
+            self.wanted = None
+            return
+        if self.pending:
+            return  # wanted: begun by _poll once it has settled
         self.cancel_speculation()
-        if self.fit.workers < 2 or self.pending or _excess(self.current, self.floor) >= self.alpha or (
+        self.wanted = None
+        if self.fit.workers < 2 or _excess(self.current, self.floor) >= self.alpha or (
                 self.deadline is not None and time.monotonic() >= self.deadline):
-            return  # two processes busy, no structure left for a correction (_left), or no time
+            return  # one process, no structure left for a correction (_left), or no time
         fit, current, chosen, x_ref, meas = self.fit, self.current, list(self.chosen), self.x_ref, self.meas
         smooth = fit.apart(lambda _: _smooth(fit, current, meas, chosen, x_ref), current)
         self.speculated.append(((current, chosen, x_ref), Ahead(lambda: smooth(None), fit.shared), fit.workers))
@@ -346,13 +361,16 @@ class _Search:
         self.fit = dataclasses.replace(self.fit, workers=workers)
         return ahead
 
-    def _speculated_for(self, current: Calibration, chosen: list[Effect], x_ref: np.ndarray) -> bool:
-        (c, ch, x), _, _ = self.speculated[0]
-        return c is current and x is x_ref and len(ch) == len(chosen) and all(a is b for a, b in zip(ch, chosen))
+    def _is_current(self, model: tuple) -> bool:
+        """Whether (current, chosen, x_ref) are the search's very model (the same objects)."""
+        c, ch, x = model
+        return (c is self.current and x is self.x_ref and len(ch) == len(self.chosen)
+                and all(a is b for a, b in zip(ch, self.chosen)))
 
-    def speculation(self, current: Calibration, chosen: list[Effect], x_ref: np.ndarray) -> Ahead | None:
-        """The smooth correction begun ahead for this very model (speculate), or None."""
-        if self.speculated and self._speculated_for(current, chosen, x_ref):
+    def speculation(self) -> Ahead | None:
+        """The smooth correction begun ahead for the search's model as it is (speculate), or None."""
+        self.wanted = None
+        if self.speculated and self._is_current(self.speculated[0][0]):
             return self._took_speculation()
         self.cancel_speculation()
         return None
@@ -705,7 +723,7 @@ def _follows_and_corrections(search: _Search, current: Calibration, chosen: list
     each; none past the deadline). Each correction starts from `current` (fit.apart). With several processes the
     smooth field, which needs nothing _follows finds, is fitted beside it (begun ahead where the model has not
     changed since: _Search.speculate; dropped when it was not needed)."""
-    ready = search.speculation(current, chosen, x_ref)  # first: it gives the search its processes back
+    ready = search.speculation()  # first: it gives the search its processes back
     fit, meas, sigma = search.fit, search.meas, search.sigma
     apart = fit.apart(lambda make: make(), current)
     untested = "a smooth correction of what is left"  # what the deadline leaves, said once

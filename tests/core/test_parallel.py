@@ -355,7 +355,7 @@ def test_a_smooth_correction_begun_ahead_is_used_for_its_model_alone():
     soon as the search's model changes."""
     began = _Done("field")
     search = _bare_search(speculated=[(("mine", [], None), began, 2)])
-    assert search.speculation("mine", [], None) is began and not began.cancelled
+    assert search.speculation() is began and not began.cancelled
     assert search.fit.workers == 2 and not search.speculated
     moved = _Done("field")
     search = _bare_search(speculated=[(("mine", [], None), moved, 2)])
@@ -364,4 +364,44 @@ def test_a_smooth_correction_begun_ahead_is_used_for_its_model_alone():
     assert moved.cancelled and search.fit.workers == 2 and not search.speculated
     other = _Done("field")
     search = _bare_search(speculated=[(("mine", [], None), other, 2)])
-    assert search.speculation("mine", ["a cause"], None) is None and other.cancelled and search.fit.workers == 2
+    search.chosen = ["a cause"]
+    assert search.speculation() is None and other.cancelled and search.fit.workers == 2
+
+
+class _Running(_Done):
+    """A _sparser search begun ahead that has not ended yet (until `done`)."""
+
+    def __init__(self, answer):
+        super().__init__(answer)
+        self.done = False
+
+    def ready(self):
+        return self.done
+
+
+@pytest.mark.parametrize("moved", [False, True])
+def test_a_smooth_correction_asked_for_beside_a_sparser_search_begins_once_it_has_settled(monkeypatch, moved):
+    """Asked for while the _sparser search begun ahead still runs (two processes busy: the Motoman's revisits began
+    0.02 s before it ended), the smooth correction is begun when that search settles, not taken, and only if the
+    search's model is still the one it was asked for."""
+    from calib_core.diagnosis import search as S
+
+    begun = []
+    monkeypatch.setattr(S, "_excess", lambda cal, floor: 0.0)  # structure left for a correction
+    monkeypatch.setattr(S, "Ahead", lambda fn, shared: begun.append(fn) or _Done("field"))
+    state = {"chosen": [], "findings": [], "current": "mine", "x_ref": None, "rejected": [], "untested": None,
+             "play_memo": [], "last": []}
+    sparser = _Running((False, state))
+    search = _bare_search(pending=[(sparser, 2)])
+    search.speculate()
+    assert not begun and search.wanted is not None and search.fit.workers == 1
+    if moved:
+        search.current = "theirs"
+    sparser.done = True
+    search._poll()
+    assert not search.pending and search.wanted is None
+    if moved:
+        assert not begun and not search.speculated and search.fit.workers == 2
+    else:
+        assert len(begun) == 1 and search.speculated and search.fit.workers == 1
+        assert search.speculation() is not None and search.fit.workers == 2
