@@ -118,6 +118,7 @@ def lm_steps(
     atol: float = 1e-14,
     covariance: bool = True,
     damping: float = 1e-4,
+    constant_from: int | None = None,
 ) -> Generator[np.ndarray, tuple[np.ndarray, np.ndarray], Solution]:
     """Levenberg-Marquardt as a generator: yields each point x it needs evaluated, is sent (r, J) there (as
     least_squares' residual_jac returns them), and returns the Solution (StopIteration.value).
@@ -126,7 +127,8 @@ def lm_steps(
     `damping` is the initial Marquardt damping (relative to the unit diagonal of the scaled normal matrix): a
     start already near the optimum (a warm start) takes Gauss-Newton steps at once with a small one.
     covariance=False skips the covariance (cov NaN, s2 on m - p degrees of freedom): for fits whose estimate
-    alone is used, such as cross-validation folds.
+    alone is used, such as cross-validation folds. `constant_from`: the Jacobian's columns from this parameter on do
+    not depend on x (a smooth field's weights), so their block of the normal matrix is made once per set of weights.
     """
     if loss not in (None, "huber", "cauchy"):
         raise ValueError(f"unknown robust loss {loss!r}; use 'huber', 'cauchy' or none")
@@ -142,6 +144,23 @@ def lm_steps(
         sq = np.sqrt(w)
         return sq[:, None], sq[:, None, None] * inv_s[:, None, None]
 
+    fixed: list = []  # (sw, the constant columns' block of the normal matrix at those weights)
+
+    def gram(JwT):
+        """J'WJ; with constant_from, its constant columns' block made once per set of weights (sw)."""
+        if constant_from is None:
+            return JwT @ JwT.T
+        k = constant_from
+        Jv, Jc = JwT[:k], JwT[k:]
+        if not fixed or fixed[0][0] is not sw:
+            fixed[:] = [(sw, Jc @ Jc.T)]
+        A = np.empty((p, p))
+        A[:k, :k] = Jv @ Jv.T
+        A[:k, k:] = Jv @ Jc.T
+        A[k:, :k] = A[:k, k:].T
+        A[k:, k:] = fixed[0][1]
+        return A
+
     def normal_eq(x, r, J):
         rw = r * inv_s[:, None]
         rww = (rw * sqw).ravel()
@@ -151,7 +170,7 @@ def lm_steps(
             JwT = (J * sw).reshape(-1, p).T
         dx = x - prior
         cost = rww @ rww + (dx**2 * lam_diag).sum()
-        A = JwT @ JwT.T
+        A = gram(JwT)
         g = JwT @ rww - lam_diag * dx
         return rw, A, g, cost
 
