@@ -312,9 +312,11 @@ class ChainEvaluations:
 
 
 CONSTANT_COLUMNS = 64
-"""Effects whose last this many columns or more move no joint (a smooth field's Cartesian weights: 372 of the
-Motoman's 469 parameters) have their block of the normal matrix made once per LM run (lm_steps' constant_from):
-the field's fit 0.38 -> ~0.3 s. Fewer are not worth the blocks."""
+"""A fit whose last effects have fixed columns (Effect.fixed_columns: a smooth field's weights, 372 of the Motoman's
+469 parameters), this many or more, makes their block of the normal matrix once per LM run (lm_steps'
+constant_from): the Motoman's field fit 0.52 -> 0.33 s. Only those: Hilti's search fits end in ~100 columns of
+link deflection that move no joint either, and the blocks' rounding moved a knife edge of its split 0 (2.03 -> 2.07
+mm held out)."""
 
 
 class ThroughJoints:
@@ -336,8 +338,6 @@ class ThroughJoints:
         self.rows = np.flatnonzero(nz[:, self.multi].any(1))
         self.P = np.ascontiguousarray(Phi_q[:, self.rows][:, :, self.multi])  # (N, r, Km)
         self.PpT = np.ascontiguousarray(Phi_p.transpose(2, 0, 1))  # (K, N, 3)
-        moves = np.flatnonzero(per > 0)
-        self.still = per.size - (int(moves[-1]) + 1 if len(moves) else 0)  # trailing columns moving no joint
 
     def shift(self, theta: np.ndarray) -> np.ndarray:
         """Phi_q theta (N, n): the joint offsets the effects give."""
@@ -359,8 +359,9 @@ class ThroughJoints:
 def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_prior=None, start=None,
          prior_scale: float = 1.0, *, evals: ChainEvaluations | None = None, covariance: bool = True,
          damping: float = 1e-4, ftol: float = FTOL, pose_noise: PoseNoise | None = None,
-         max_iter: int = 100) -> Solution:
-    """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian.
+         max_iter: int = 100, fixed: int = 0) -> Solution:
+    """LM over x[idx] and, with bases (Phi_q, Phi_p), the effect parameters: the coupled Jacobian. The last `fixed`
+    effect parameters have fixed columns (Effect.fixed_columns; used from CONSTANT_COLUMNS on).
 
     `pose_noise` (shared_motion.PoseNoise): motions the targets of one pose share (the joints upstream of them
     landing a little differently at each visit) as noise of that pose: generalised least squares with per-pose
@@ -394,8 +395,8 @@ def _fit(model, meas, sigma, x0, R0, idx, loss, regularize, bases=None, effect_p
 
     nominal, prior = _prior(model, meas, x0, idx, regularize, prior_scale, effect_prior, K_eff)
     begin = nominal if start is None else start
-    if through is not None and through.still >= CONSTANT_COLUMNS:  # their Jacobian's columns are the bases' own
-        prior["constant_from"] = p_geo + K_eff - through.still
+    if fixed >= CONSTANT_COLUMNS:
+        prior["constant_from"] = p_geo + K_eff - fixed
     if pose_noise is None:
         return least_squares(residual_jac, begin, sigma, loss=loss, covariance=covariance, damping=damping,
                              ftol=ftol, max_iter=max_iter, **prior)
@@ -573,7 +574,12 @@ def _calibrate(model, meas, sigma, x0, R0, ident, idx, *, effects=(), loss=None,
             x_ref[idx] = geo.x
         bases = effect_bases(model, meas, effects, x_ref, R0)
     eprior = _effect_prior(model, effects)
-    fit = dict(prior_scale=prior_scale, evals=evals, pose_noise=pose_noise)
+    fixed = 0  # the last effects' parameters whose columns are fixed
+    for e in reversed(effects):
+        if not e.fixed_columns:
+            break
+        fixed += len(e.parameter_names(model))
+    fit = dict(prior_scale=prior_scale, evals=evals, pose_noise=pose_noise, fixed=fixed)
     if model_error_mm is not None:  # the weighting given: one solve
         s_model, sigma0_measurement = float(model_error_mm), None
         sigma = np.sqrt(sigma**2 + s_model**2)

@@ -155,6 +155,7 @@ class Effect:
     kind = "effect"
     needs = "nothing"
     bounded = True  # a real play, spring or bearing moves a joint by a fraction of a degree (findings._judge_sizes)
+    fixed_columns = False  # its Jacobian's columns are its Cartesian basis alone, the same at every step of a fit
 
     def label(self, model: RobotModel) -> str:
         names = ",".join(model.joint_names[j] for j in self.joints) or "robot"

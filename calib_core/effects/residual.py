@@ -32,6 +32,7 @@ class ResidualField(Effect):
     """A smooth Cartesian correction over joint space; weights in mm."""
 
     kind = "unexplained"
+    fixed_columns = True  # its weights move no joint: identify makes their block of the normal matrix once
     length_scale: float | None = None
     n_features: int = N_FEATURES
     seed: int = 0
