@@ -308,7 +308,7 @@ class _Search:
         """Settles a _sparser search begun ahead as soon as it has ended: not taken, the search goes on in two
         processes again (and begins the smooth correction asked for meanwhile: speculate); taken, what was done
         meanwhile is dropped at once (_Settled). Drops a smooth correction begun for a model the search has left."""
-        if self.speculated and not self._is_current(self.speculated[0][0]):
+        if self.speculated and not self._speculated_here():
             self.cancel_speculation()
         if self.pending and self.pending[0][0].ready() and self.settle():
             raise _Settled
@@ -335,7 +335,7 @@ class _Search:
         if self.wanted is None or not self._is_current(self.wanted):
             self.wanted = None
             return
-        if self.speculated and self._is_current(self.speculated[0][0]):
+        if self._speculated_here():
             self.wanted = None
             return
         if self.pending:
@@ -361,6 +361,10 @@ class _Search:
         self.fit = dataclasses.replace(self.fit, workers=workers)
         return ahead
 
+    def _speculated_here(self) -> bool:
+        """A smooth correction was begun ahead for the search's model as it is."""
+        return bool(self.speculated) and self._is_current(self.speculated[0][0])
+
     def _is_current(self, model: tuple) -> bool:
         """Whether (current, chosen, x_ref) are the search's very model (the same objects)."""
         c, ch, x = model
@@ -370,7 +374,7 @@ class _Search:
     def speculation(self) -> Ahead | None:
         """The smooth correction begun ahead for the search's model as it is (speculate), or None."""
         self.wanted = None
-        if self.speculated and self._is_current(self.speculated[0][0]):
+        if self._speculated_here():
             return self._took_speculation()
         self.cancel_speculation()
         return None
