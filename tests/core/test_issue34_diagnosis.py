@@ -31,7 +31,7 @@ def _draw(kind: str, seed: int, size: float | None = None):
     size = float(np.exp(rng.uniform(*np.log(SIZES)))) if size is None else size
     world = World(model, seed)
     q = world.sample_joints(150, rng)
-    payload = LOAD_CYCLE_KG[robot] if kind in ("two_joint_springs", "tilted_base_spring") else None
+    payload = LOAD_CYCLE_KG[robot] if kind in ("play_load_sign", "two_joint_springs", "tilted_base_spring") else None
     info = hide(world, kind, size, rng, q=q, payload_kg=payload)
     camp = world.campaign(q, payload_kg=payload, temperature=info["temperature"])
     where = f"{kind} on {robot} {info['parameters']} at {size:.2f}x the noise, seed {seed}"
@@ -50,6 +50,18 @@ def _truth_error(world, cal, info, camp, payload, seed) -> float:
 
 def _said(d) -> list:
     return [(f["kind"], f["joints"], f.get("significant_joints"), f.get("form")) for f in d.findings]
+
+
+def test_a_play_whose_side_follows_the_true_load_is_named_for_its_joint(seed):
+    """The world's play sits on the flank its true load pushes it to, the model's mass data 15 % off (a few poses'
+    model load has the other sign): named a play of that joint and nothing else physical, and fresh poses predicted
+    (the best 95 %: a fresh pose within the switch's doubt may sit on either flank, RESULTS 3.17)."""
+    model, world, info, camp, payload, where = _draw("play_load_sign", seed)
+    d = diagnose(model, camp.meas)
+    where += f": said {_said(d)}"
+    named = [f for f in d.findings if is_named(f)]
+    assert [(f["kind"], f["joints"]) for f in named] == [("backlash", info["joints"])], where
+    assert _truth_error(world, d.calibration, info, camp, payload, seed) < TRUTH_LIMIT, where
 
 
 def test_springs_on_two_joints_are_named_for_those_two(seed):
@@ -171,7 +183,7 @@ def test_a_telescopic_stages_sag_is_its_link_and_nothing_else(seed):
     assert alone, [w for w, _, _ in draws]
 
 
-@pytest.mark.parametrize("kind", ["two_joint_springs", "target_remount", "link_thermal_growth", "tilted_base_spring",
+@pytest.mark.parametrize("kind", ["play_load_sign", "two_joint_springs", "target_remount", "link_thermal_growth", "tilted_base_spring",
                                   "tilted_base_sag"])
 def test_no_mechanism_means_no_finding(kind, seed):
     model, world, info, camp, payload, where = _draw(kind, seed, size=0.0)
