@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 
 from ..effects import (Backlash, Context, Effect, JointCompliance, LinkDeflection, LoadCompliance, RootTurnLinkDeflection,
-                       TiltedLinkDeflection, has_loads, on_joints)
+                       TiltedLinkDeflection, has_loads, loads, on_joints)
 from ..effects.structure import STEP_WINDOW, at_gap, session_clock
 from ..parallel import pmap
 from .evidence import HOLDOUT_ALPHA, REFINE_ALPHA, _better, _holdout_rms_every_pose, holdout_gain
@@ -111,9 +111,14 @@ def _refinements(e: Effect, load_pool: dict[int, LoadCompliance], play_pool: dic
     j = e.joints[0]
     spring_or_play = isinstance(e, (JointCompliance, Backlash)) and not getattr(e, "stiffening", 0)
     if spring_or_play and has_loads(ctx.model, ctx.meas):
-        # a soft play and a stiffening spring both deflect less and less as the load grows: try both
-        big = float(np.abs(ctx.loads[:, j]).max())
-        out += [JointCompliance(e.joints, stiffening=r, load_scale=big) for r in STIFFENING]
+        # a soft play and a stiffening spring both deflect less and less as the load grows: try both, on the mass
+        # data the spring carries (identified under it, or the model's)
+        mass = {"masses": getattr(e, "masses", ()), "gravity": getattr(e, "gravity", ())}
+        load = ctx.loads if not any(mass.values()) else loads(
+            ctx.chain, ctx.meas, np.asarray(mass["masses"], float) if mass["masses"] else None,
+            np.asarray(mass["gravity"], float) if mass["gravity"] else None)
+        big = float(np.abs(load[:, j]).max())
+        out += [JointCompliance(e.joints, stiffening=r, load_scale=big, **mass) for r in STIFFENING]
     if isinstance(e, Backlash) and e.load_coef:
         # ...also on the load the play found: the model's masses may be off or absent (a spring of 7.8x the noise
         # on J4 was taken for a soft play on its identified load, 1.8x the noise off the truth; seed 1808188314)
