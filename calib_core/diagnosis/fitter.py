@@ -44,18 +44,19 @@ class _Fitter:
         return (self.model, self.meas)
 
     def apart(self, fn: Callable[[T], R], start: Calibration | None = None) -> Callable[[T], R]:
-        """fn for parallel.pmap: every call starts where the fit before the map ended (or from `start`), and leaves
-        the fit where it was (fits in worker processes cannot move it; in order they would, so one worker and several
-        give the same answers)."""
-        before = list(self.last)
-        begin = [start] if start is not None else before
+        """fn for parallel.pmap (and Ahead): every call starts where the fit before the map ended (or from `start`),
+        and leaves the fit where it was when called (fits in worker processes cannot move it; in order they would, so
+        one worker and several give the same answers; an Ahead whose child died is called here later, when the
+        search's fit has moved on)."""
+        begin = [start] if start is not None else list(self.last)
 
         def run(item: T) -> R:
+            was = list(self.last)
             self.last[:] = begin
             try:
                 return fn(item)
             finally:
-                self.last[:] = before
+                self.last[:] = was
         return run
 
     def __call__(self, effects=(), x_ref=None, folds: int | None = None, pose_noise=None,
