@@ -445,9 +445,10 @@ def _report(model: RobotModel, pool: Pool, meas: Measurements | None, chosen: np
 # ---------------------------------------------------------------------------------------------- diagnosis
 def nested(a: Effect, b: Effect) -> bool:
     """One cause is the other on more joints (a joint's compliance and the compliance of the whole arm): the
-    richer one fits whatever the other fits, so no pose can split them; parsimony keeps the smaller."""
-    return type(a) is type(b) and a.harmonic == b.harmonic and (set(a.joints) <= set(b.joints)
-                                                                or set(b.joints) <= set(a.joints))
+    richer one fits whatever the other fits, so no pose can split them; parsimony keeps the smaller. A cause on no
+    joint (the whole robot against the tracker, the target) is not one on a joint on fewer joints."""
+    return type(a) is type(b) and a.harmonic == b.harmonic and bool(a.joints) == bool(b.joints) and (
+        set(a.joints) <= set(b.joints) or set(b.joints) <= set(a.joints))
 
 
 def lookalike_pairs(model: RobotModel, meas: Measurements, effects, findings: list[dict]

@@ -306,15 +306,34 @@ def _label(f: dict) -> str:
 
 
 def _nested(f: dict, a: dict) -> bool:
-    """One is the other cause on more joints (calib_core.plan.nested, on the answer's labels)."""
+    """One is the other cause on more joints, or in another form on the same ones (calib_core.plan.nested, on the
+    answer's labels); a cause on no joint (the robot against the tracker, the target) is not a joint's on fewer."""
     x, y = set(f.get("joints") or []), set(a.get("joints") or [])
-    return f["kind"] == a["kind"] and f.get("harmonic") == a.get("harmonic") and (x <= y or y <= x)
+    return (f["kind"] == a["kind"] and f.get("harmonic") == a.get("harmonic") and bool(x) == bool(y)
+            and (x <= y or y <= x))
+
+
+def _nesting(f: dict, a: dict) -> str:
+    """How a nested pair reads: the cause on more joints is the other on more joints; on the same joints, another
+    form of it. (It read "unexplained[] is unexplained[T1] on more joints" for a step of the target beside one of
+    T1, a cause on no joint.)"""
+    x, y = set(f.get("joints") or []), set(a.get("joints") or [])
+    if x == y:
+        return f"{_label(a)} is {_label(f)} in another form"
+    small, big = (f, a) if x < y else (a, f)
+    return f"{_label(big)} is {_label(small)} on more joints"
+
+
+def _steps(f: dict, a: dict) -> bool:
+    """Both a step in the session (their forms `step[...]`): poses measured after it are after both."""
+    return all(str(d.get("form") or "").startswith("step[") for d in (f, a))
 
 
 def _plannable(f: dict, a: dict) -> bool:
     """Whether the answer says a diagnosis plan can split the finding from this look-alike (`plannable`, set by
-    calib_core.pipeline with calib_core.plan.plannable; an answer without it: unless nested)."""
-    return not _nested(f, a) and a.get("plannable", True) is not False
+    calib_core.pipeline with calib_core.plan.plannable; an answer without it: unless nested), and they are not two
+    steps in the session (_steps)."""
+    return not _nested(f, a) and not _steps(f, a) and a.get("plannable", True) is not False
 
 
 def _together(findings: list[dict], a: str, b: str) -> bool:
@@ -326,15 +345,20 @@ def _split_lookalikes(api: Api, robot_id: str, ms_id: str, camp: Campaign, findi
     """Plan N_SPLIT poses that tell the listed look-alikes apart; on the twin, measure them, add them to the
     campaign as a new set, run `auto` on it and tell whether each pair is still listed."""
     # two forms of one look-alike (on the model's masses, on an identified load) read the same here: one pair
-    pairs = list({(_label(f), _label(a)): (f, a) for f in findings for a in f.get("indistinguishable_from") or []}
-                 .values())
-    say(f"The diagnosis lists causes these poses cannot tell apart: "
-        f"{'; '.join(f'{_label(f)} ~ {_label(a)}' for f, a in pairs)}.", 3)
-    nested = [(f, a) for f, a in pairs if _nested(f, a)]
+    pairs = list({(_label(f), _label(a), *((f.get("form"), a.get("form")) if _steps(f, a) else ())): (f, a)
+                  for f in findings for a in f.get("indistinguishable_from") or []}.values())
+    said = [f"{f['form']} ~ {a['form']}" if _steps(f, a) else f"{_label(f)} ~ {_label(a)}" for f, a in pairs]
+    say(f"The diagnosis lists causes these poses cannot tell apart: {'; '.join(said)}.", 3)
+    steps = [(f, a) for f, a in pairs if _steps(f, a)]
+    nested = [(f, a) for f, a in pairs if _nested(f, a) and not _steps(f, a)]
     if nested:
-        say(f"{'; '.join(f'{_label(a)} is {_label(f)}' for f, a in nested)} on more joints: the richer form fits "
-            "whatever the smaller one fits, so no pose can split them; the diagnosis keeps the smaller one.", 3)
-    unplanned = [(f, a) for f, a in pairs if not _nested(f, a) and not _plannable(f, a)]
+        say(f"{'; '.join(_nesting(f, a) for f, a in nested)}: the richer form fits whatever the other fits, so no "
+            "pose can split them; the diagnosis names the one it found.", 3)
+    if steps:
+        said = "; ".join(f"{f['form']} ~ {a['form']}" for f, a in steps)
+        say(f"{said}: steps in the session's order, which no pose measured from now on can tell apart (such a pose "
+            "comes after both); the cell's log of that session can (a joint re-homed, the target re-seated).", 3)
+    unplanned = [(f, a) for f, a in pairs if not _nested(f, a) and not _steps(f, a) and not _plannable(f, a)]
     if unplanned:
         said = "; ".join(f"{_label(f)} ~ {a.get('form') or _label(a)}" for f, a in unplanned)
         why = (": a cause fitted on a load identified from this set's data is not among the plan's candidates"

@@ -333,6 +333,40 @@ def test_two_forms_of_one_lookalike_are_one_pair(capsys):
     assert story.count("joint_compliance[T2,T3,T4c] is joint_compliance[T4c]") == 1, story
 
 
+def test_lookalikes_are_said_for_what_they_are(capsys):
+    """A step of T1 beside a step of the target (a cause on no joint) is two steps in the session, which no pose
+    measured later splits: the story said "unexplained[] is unexplained[T1] on more joints" (the Motoman). A cause
+    on more joints is named as the one on more joints, whichever of the two was found; two steps on one joint at
+    other times are not merged into one pair."""
+    t1 = {"kind": "unexplained", "joints": ["T1"]}
+    found = [{**t1, "form": "step[T1 @ 87]", "indistinguishable_from": [
+                 {"kind": "unexplained", "joints": [], "form": "step[target @ 108.5]"}]},
+             {**t1, "form": "step[T1 @ 13.5]", "indistinguishable_from": [
+                 {"kind": "unexplained", "joints": [], "form": "step[target @ 10.5]"}]},
+             {"kind": "joint_compliance", "joints": ["J3", "J4"], "form": "joint_compliance[J3,J4]",
+              "indistinguishable_from": [{"kind": "joint_compliance", "joints": ["J4"], "form": "joint_compliance[J4]"}]}]
+    demo._split_lookalikes(None, "robot", "set", None, found, 0)  # nothing plannable: no call is made
+    story = flat(capsys.readouterr().out)
+    assert "on more joints" in story and "joint_compliance[J3,J4] is joint_compliance[J4] on more joints" in story
+    assert "unexplained[] is" not in story and "unexplained[T1] is" not in story, story
+    assert "step[T1 @ 87] ~ step[target @ 108.5]; step[T1 @ 13.5] ~ step[target @ 10.5]: steps in the session" in story
+    assert "No pose plan" not in story and "plans the poses" not in story, story
+
+
+def test_a_cause_on_no_joint_is_not_nested_in_one_on_a_joint():
+    """calib_core.plan.nested: the compliance of J4 is the arm's on fewer joints; the robot's shift against the
+    tracker (a step on no joint) is not a step of T1 on fewer joints."""
+    from calib_core.effects import JointCompliance
+    from calib_core.effects.structure import SessionStep
+    from calib_core.plan import nested
+
+    assert nested(JointCompliance((3,)), JointCompliance((2, 3, 4))) and nested(JointCompliance((2, 3, 4)),
+                                                                                 JointCompliance((3,)))
+    assert not nested(SessionStep((6,), at=87.0), SessionStep((), at=108.5))
+    assert not nested(SessionStep((), at=10.5), SessionStep((6,), at=13.5))
+    assert nested(SessionStep((), at=10.5), SessionStep((), at=155.0))
+
+
 def test_demo_arguments_are_checked(tmp_path):
     env = base_env(f"sqlite:///{tmp_path / 'calib.db'}")
     r = calib("demo", "--data", "m.csv", cwd=tmp_path, env=env, timeout=60)
