@@ -60,9 +60,11 @@ def _finding(c: Candidate, model: RobotModel, before: Calibration, after: Calibr
         out["follows"] = [{"what": ORDER_NAMES[e.source], "detail": when, "joints": _names(e, model), "p_value": c.p_value}]
     if alike:
         out["indistinguishable_from"] = alike
+        later = isinstance(e, SessionStep) and all(str(a.get("form", "")).startswith("step[") for a in alike)
         out["evidence"] += ("; on this pose set it cannot be told apart from " +
-                            ", ".join(_said(a) for a in alike) +
-                            " (held-out within 2 %): measure poses that separate them to be sure")
+                            ", ".join(_said(a) for a in alike) + " (held-out within 2 %): " +
+                            ("steps in the session, which no pose measured from now on can separate (it comes after "
+                             "both); the session's log can" if later else "measure poses that separate them to be sure"))
     return out
 
 

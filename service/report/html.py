@@ -527,21 +527,38 @@ def _next_steps(answer: dict, findings: list[dict], cid: str) -> list[str]:
         out.append("Run the diagnosis again with a longer time budget: causes not reached were never tested.")
     alts = [f for f in findings if f.get("indistinguishable_from") and f.get("significant") is not False]
     for f in alts:
+        # two steps in the session: poses measured from now on come after both (the report asked for poses that
+        # tell T1's zero from the target's step apart, as if the plan service could not rebuild a load)
+        steps = [a for a in f["indistinguishable_from"] if step_title(f) and step_title(a)]
+        if steps:
+            others = ", or ".join(f"{_stepped(a)} (at {_e(str(a.get('form', '')).split(' @ ')[-1].rstrip(']'))})"
+                                  for a in steps)
+            out.append(f"Check the session's log {_e(_step_place(f))}: {_stepped(f)} stepped there, or {others}; the "
+                       f"data fit both equally well, and no pose measured from now on can tell them apart (it comes "
+                       f"after both).")
         # the plan service is suggested only for pairs it can rebuild (`plannable`, as the demo asks it)
         for plannable in (True, False):
-            alt = [finding_title(a) for a in f["indistinguishable_from"] if (a.get("plannable") is not False)
-                   == plannable]
+            rivals = [a for a in f["indistinguishable_from"] if (a.get("plannable") is not False) == plannable
+                      and not any(a is b for b in steps)]
+            alt = [finding_title(a) for a in rivals]
             if not alt:
                 continue
+            why = (", as a cause fitted on a load identified from the data is not among its candidates"
+                   if all("identified load" in str(a.get("form") or "") for a in rivals) else "")
             how = ("(<code>POST /robots/{id}/plan</code> with <code>purpose: diagnosis</code>)" if plannable else
                    "(chosen by hand: the plan service cannot rebuild "
-                   f"{'this pair' if len(alt) == 1 else 'these pairs'} from the stored calibration, as a cause "
-                   "fitted on a load identified from the data is not among its candidates)")
+                   f"{'this pair' if len(alt) == 1 else 'these pairs'} from the stored calibration{why})")
             out.append(f"Measure poses that tell {_e(finding_title(f))} apart from "
                        f"{_e(', '.join(alt)) if len(alt) <= 2 else f'{len(alt)} look-alike causes (listed above)'} "
                        f"{how}, then calibrate again: the data fit them equally well.")
     for f in findings:
-        if f.get("kind") == "unexplained":
+        if step_title(f) and not any(step_title(a) for a in f.get("indistinguishable_from") or []):
+            out.append(f"Check the session's log {_e(_step_place(f))}: {_stepped(f)} stepped there (a joint re-homed, "
+                       f"the tracker, the base or the target moved); the calibrated model takes every new pose to be "
+                       f"after it.")
+        elif step_title(f):
+            continue  # said with its look-alikes above
+        elif f.get("kind") == "unexplained":
             top = (f.get("follows") or [{}])[0]
             out.append(f"Look for what the structure no named cause explains follows: "
                        f"{_e(top.get('what') or 'see the finding')}; "
@@ -563,4 +580,14 @@ def _next_steps(answer: dict, findings: list[dict], cid: str) -> list[str]:
         out.append("Run the <code>auto</code> model to have what the geometry leaves diagnosed.")
     out.append(f"Use the calibrated model: <code>GET /calibrations/{_e(cid)}/model</code> (or <code>/urdf</code>), "
                f"or let the service compensate targets (<code>POST /calibrations/{_e(cid)}/compensate</code>).")
-    return out
+    return list(dict.fromkeys(out))  # once each: two corrections that follow the same thing read the same
+
+
+def _stepped(f: dict) -> str:
+    """What stepped in a step finding (`T1's zero`, `the target on its flange`), escaped."""
+    return _e((step_title(f) or "").split(": ", 1)[-1])
+
+
+def _step_place(f: dict) -> str:
+    """Where a step finding sits in the session (`in time order between 85 and 89 (sequence 87)`), or ''."""
+    return str(((f.get("follows") or [{}])[0]).get("detail") or "")

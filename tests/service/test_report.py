@@ -243,6 +243,41 @@ def test_report_of_a_search_stopped_at_its_time_budget_says_so():
     assert "time budget" not in text_of(render(answer))
 
 
+def test_steps_in_the_session_send_the_reader_to_its_log():
+    """A step of T1 that the data cannot tell from a step of the target (the Motoman's answer): what to do next is to
+    check the session's log there, not to measure poses that tell them apart 'as a cause fitted on a load identified
+    from the data' (the report said so, twice, with one line per step that read the same); a step without a
+    look-alike is sent to the log too; a pair the plan service cannot rebuild is said so, with the identified load
+    only where that is why."""
+    step = lambda what, at, lo, hi: {  # noqa: E731
+        "kind": "unexplained", "joints": [what] if what not in ("robot", "target") else [],
+        "form": f"step[{what} @ {at}]", "holdout_rms_before_mm": 0.6, "holdout_rms_after_mm": 0.5, "gain_pct": 16.0,
+        "evidence": "...", "follows": [{"what": "measurement order (sequence)",
+                                        "detail": f"in time order between {lo} and {hi} (sequence {at})"}]}
+    t1 = {**step("T1", 87, 85, 89), "indistinguishable_from": [
+        {"kind": "unexplained", "joints": [], "form": "step[target @ 108.5]", "plannable": False}]}
+    t1b = {**step("T1", 13.5, 12, 15), "indistinguishable_from": [
+        {"kind": "unexplained", "joints": [], "form": "step[target @ 10.5]", "plannable": False}]}
+    play = {"kind": "backlash", "joints": ["L1"], "form": "backlash[L1]", "holdout_rms_before_mm": 2.2,
+            "holdout_rms_after_mm": 1.6, "gain_pct": 29.0, "evidence": "...", "indistinguishable_from": [
+                {"kind": "cyclic_joint_error", "joints": ["L1"], "harmonic": 2, "form": "cyclic_joint_error[L1, h2]",
+                 "plannable": False}]}
+    answer = {"id": "c0ffee", "model": ["geometric", "unexplained"], "metrics": {"n_poses": 410}, "parameters": [],
+              "diagnosis": {"verdict": "causes found", "search_complete": True, "noise_floor_mm": 0.04,
+                            "explanation": "...", "findings": [play, t1, step("robot", 168, 167, 169), t1b]}}
+    text = text_of(render(answer))
+    start = text.index("What to do next")
+    nxt = text[start:text.index("Evidence", start)]
+    assert "Check the session's log in time order between 85 and 89 (sequence 87): T1's zero stepped there, or the " \
+           "target on its flange (at 108.5)" in nxt, nxt
+    assert "between 12 and 15 (sequence 13.5): T1's zero stepped there, or the target on its flange (at 10.5)" in nxt
+    assert "between 167 and 169 (sequence 168): the robot against the tracker stepped there" in nxt, nxt
+    assert "tell a step in the session" not in nxt and "measurement order (sequence); until then" not in nxt, nxt
+    assert "apart from cyclic joint error on L1 (harmonic 2) (chosen by hand: the plan service cannot rebuild this " \
+           "pair from the stored calibration)" in nxt, nxt  # not for an identified load: not said so
+    assert nxt.count("Check the session's log") == 3 and nxt.count("Use the calibrated model") == 1, nxt
+
+
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium is not installed (.ci/run installs it)")
 def test_report_prints_to_pdf(server, calibrations, tmp_path):
     pdf = tmp_path / "report.pdf"
