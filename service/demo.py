@@ -34,6 +34,7 @@ from .demo_campaign import (Campaign, _commands, _groups, _n_poses, _pose_fields
                             errors_mm, from_files, read_model, simulated, spray7_model)
 from .demo_client import Api, Server
 from .demo_console import DemoError, ProgressBar, fmm, head, say, table
+from .report.figures import step_title
 
 N_PLAN = 50
 """Of the simulated campaign's N_CAL calibration poses, this many are planned by POST /robots/{id}/plan (D-optimal
@@ -325,8 +326,8 @@ def _nesting(f: dict, a: dict) -> str:
 
 
 def _steps(f: dict, a: dict) -> bool:
-    """Both a step in the session (their forms `step[...]`): poses measured after it are after both."""
-    return all(str(d.get("form") or "").startswith("step[") for d in (f, a))
+    """Both a step in the session (service.report.figures.step_title): poses measured after it are after both."""
+    return bool(step_title(f) and step_title(a))
 
 
 def _plannable(f: dict, a: dict) -> bool:

@@ -531,8 +531,8 @@ def _next_steps(answer: dict, findings: list[dict], cid: str) -> list[str]:
         # tell T1's zero from the target's step apart, as if the plan service could not rebuild a load)
         steps = [a for a in f["indistinguishable_from"] if step_title(f) and step_title(a)]
         if steps:
-            others = ", or ".join(f"{_stepped(a)} (at {_e(str(a.get('form', '')).split(' @ ')[-1].rstrip(']'))})"
-                                  for a in steps)
+            others = ", or ".join(f"{_stepped(a)} (at {_e(str(a['form']).split(' @ ')[-1].rstrip(']'))})"
+                                  for a in steps)  # step[target @ 108.5]: where in the session's clock
             out.append(f"Check the session's log {_e(_step_place(f))}: {_stepped(f)} stepped there, or {others}; the "
                        f"data fit both equally well, and no pose measured from now on can tell them apart (it comes "
                        f"after both).")
