@@ -196,8 +196,11 @@ def _identify_masses(current: Calibration, chosen: list[Effect], findings: list[
     norms = float(np.linalg.norm(g) * np.linalg.norm(g0))
     off_mrad = 1e3 * float(np.arccos(np.clip(g @ g0 / norms, -1.0, 1.0))) if norms > 0 else 0.0
     notes[:] = [n for n in notes if not n.startswith(MASS_NOTE)]  # a second identification replaces the first
+    scale = "" if meas.payload is not None and np.ptp(meas.payload) > 0 else (
+        " (positions tell masses only in proportion to each other here: no payload of known mass varies, and a "
+        "heavier arm on softer joints bends the same, so their common scale is the model's)")
     notes.append(f"{MASS_NOTE} (held-out {hb:.3f} -> {ha:.3f} mm, paired {_p(p_gain)}): "
-                 + (shown or "no mass moved by more than 10 %")
+                 + (shown or "no mass moved by more than 10 %") + (scale if shown else "")
                  + f"; gravity {off_mrad:.1f} mrad off the model's base z (the base frame the geometry defines is not "
                  "exactly level); the compliances' std are conditional on these masses and this gravity (the "
                  "prediction std carry their doubt)")

@@ -317,6 +317,20 @@ def test_a_spring_on_identified_mass_data_stiffens_on_that_mass_data(seed):
     assert all(not f.masses and np.isclose(f.load_scale, np.abs(ctx.loads[:, j]).max()) for f in plain), seed
 
 
+def test_positions_tell_masses_only_up_to_a_scale_unless_a_known_payload_varies(seed):
+    """Why the mass note says the identified masses' common scale is the model's when no payload varies: a spring
+    under twice every body's mass data bends exactly as one half as stiff (so positions cannot tell them), and with
+    a payload of known kg that changes between poses it does not."""
+    meas, _, _, ch = _poses(seed, 60)  # payloads 0 / 5 kg drawn per pose
+    rng = np.random.default_rng((seed, 8))
+    phi = body_parameters(TREE) * rng.uniform(0.7, 1.3, (TREE.n_joints, 1))
+    for payload, proportional in ((None, True), (meas.payload, False)):
+        ctx = Context(TREE, ch, dataclasses.replace(meas, payload=payload))
+        j = int(rng.choice([k for k in MOVING if np.ptp(ctx.loads[:, k]) > 0]))
+        bend = [JointCompliance((j,), masses=tuple(map(tuple, k * phi))).basis(ctx).joint[:, j, 0] for k in (1, 2)]
+        assert np.allclose(bend[1], 2 * bend[0], rtol=1e-12, atol=1e-15) == proportional, (seed, payload is None)
+
+
 def _energy_loads(meas, x, R0, h=1e-6):
     """The gravity + payload load on each actuated joint's drive (N, n_act) N*m, from the potential energy of the
     tree's bodies and payload (J, mm -> m) differentiated along each actuated coordinate, the coupled rows following
