@@ -507,6 +507,13 @@ def _fmt(v, f="{:.2f}") -> str:
     return "n/a" if v is None else f.format(v)
 
 
+def also_named(r: dict) -> list[dict]:
+    """The physical findings of a named-cause draw whose kind is not the expected one (nor `unexplained` or a
+    correction): what a reader would take for a second cause the world does not have."""
+    return [f for f in r["findings"] if f["kind"] not in (r["expected"], "unexplained", "correction")
+            and f.get("physical", True)]
+
+
 def tabulate(records: list[dict], wall_s: float | None = None) -> None:
     new = [r for r in records if r.get("kind") in MECHANISMS_34]  # issue 34's rows: a table of their own
     records = [r for r in records if r.get("kind") not in MECHANISMS_34]
@@ -628,6 +635,14 @@ def tabulate(records: list[dict], wall_s: float | None = None) -> None:
             found = "; ".join(f"{f['kind']}[{','.join(f['joints'])}]" for f in r["findings"]) or "[]"
             print(f"- {r['robot']} {r['kind']} {r['size']:g}x #{r['draw']}: {r['expected']}[{','.join(r['hidden'])}] "
                   f"-> {found}")
+    also = [(r, extra) for r in named if r["size"] >= 1.0 and (extra := also_named(r))]
+    here = [r for r, extra in also if all(set(f["joints"]) & set(r["hidden"]) for f in extra)]
+    print(f"\nDraws from 1x that also name another physical kind beside the expected one: {len(also)} of "
+          f"{sum(r['size'] >= 1.0 for r in named)} ({len(here)} on the hidden joints: another form of the same cause; "
+          f"{len(also) - len(here)} elsewhere)" + "".join(
+              f"\n- {r['robot']} {r['kind']} {r['size']:g}x #{r['draw']} [{','.join(r['hidden'])}]: also "
+              + "; ".join(f"{f['kind']}[{','.join(f['joints'])}]" for f in extra)
+              for r, extra in also if r not in here))
     odd = [r for r in done + nulls if any(not f.get("physical", True) for f in r["findings"])]
     print(f"\nDraws with a finding of no physical size (the world's causes all have physical sizes): {len(odd)} of "
           f"{len(done) + len(nulls)}" + ("".join(f"\n- {r['robot']} {r['kind']} {r.get('size', '')} #{r['draw']}"
