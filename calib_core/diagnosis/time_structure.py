@@ -23,7 +23,7 @@ def _when(e: Effect, meas: Measurements) -> str:
         order = np.argsort(clock, kind="stable")
         k = int(np.searchsorted(clock[order], e.at))
         stamp = (datetime.fromtimestamp(e.at, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC") if source == "time"
-                 else f"sequence {e.at:g}")
+                 else f"sequence {e.at:.12g}")
     else:
         order, k, stamp = np.arange(meas.n_poses), int(e.at), f"row {int(e.at) + 1}"
     ids = meas.point_ids or [str(i + 1) for i in range(meas.n_poses)]

@@ -76,7 +76,7 @@ class SessionStep(Effect):
         to the second, else the sequence number or row."""
         if self.source == "time":
             return datetime.fromtimestamp(self.at, timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-        return f"{self.at:g}"
+        return f"{self.at:.12g}"  # a sequence number as written (:g read 1234567.5 as 1.23457e+06)
 
     def parameter_names(self, model):
         if self.joints:
@@ -105,7 +105,7 @@ class SessionStep(Effect):
         return Basis(None, cart, s, "after the step (0 / 1)")
 
     def label(self, model):
-        return f"step[{','.join(model.joint_names[j] for j in self.joints) or 'robot'} @ {self.at:g}]"
+        return f"step[{','.join(model.joint_names[j] for j in self.joints) or 'robot'} @ {self.place()}]"
 
     def stepped(self, model) -> str:
         """What stepped, for people."""
@@ -133,7 +133,7 @@ class TargetStep(SessionStep):
         return Basis(None, ctx.chain.R_end * s[:, None, None], s, "after the step (0 / 1)")
 
     def label(self, model):
-        return f"step[target @ {self.at:g}]"
+        return f"step[target @ {self.place()}]"
 
     def stepped(self, model) -> str:
         return "the target on its flange"
